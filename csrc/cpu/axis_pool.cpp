@@ -1,0 +1,120 @@
+// CPU kernels of axis_pool: the three axis means of a volume in one read, and the backward
+// in one write. Work is split over the B*C slabs [X, Y, Z]; inside a slab the Z rows are
+// contiguous, so each row feeds all three means while it is in L1.
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include "checks.h"
+
+namespace t3fast {
+namespace {
+
+constexpr const char* kOp = "axis_pool";
+constexpr const char* kOpBwd = "axis_pool_backward";
+
+template <typename T>
+void pool_slab(const T* v, T* xy, T* xz, T* yz, int64_t X, int64_t Y, int64_t Z) {
+  const T inv_x = T(1) / T(X), inv_y = T(1) / T(Y), inv_z = T(1) / T(Z);
+  std::fill(xz, xz + X * Z, T(0));
+  std::fill(yz, yz + Y * Z, T(0));
+  for (int64_t x = 0; x < X; ++x) {
+    T* xz_row = xz + x * Z;
+    for (int64_t y = 0; y < Y; ++y) {
+      const T* row = v + (x * Y + y) * Z;
+      T* yz_row = yz + y * Z;
+      T sum = T(0);
+      for (int64_t z = 0; z < Z; ++z) {
+        sum += row[z];
+        xz_row[z] += row[z];
+        yz_row[z] += row[z];
+      }
+      xy[x * Y + y] = sum * inv_z;
+    }
+    for (int64_t z = 0; z < Z; ++z) xz_row[z] *= inv_y;
+  }
+  for (int64_t i = 0; i < Y * Z; ++i) yz[i] *= inv_x;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& volume) {
+  check_dim(volume, kOp, "volume", 5, "[B, C, X, Y, Z]");
+  check_float_dtype(volume, kOp, "volume");
+  const int64_t B = volume.size(0), C = volume.size(1), X = volume.size(2), Y = volume.size(3),
+                Z = volume.size(4);
+  T3FAST_CHECK(X > 0 && Y > 0 && Z > 0, kOp, "volume must have non-empty X, Y, Z, got ",
+               volume.sizes());
+  const at::Tensor v = volume.contiguous();
+  at::Tensor xy = at::empty({B, C, X, Y}, v.options());
+  at::Tensor xz = at::empty({B, C, X, Z}, v.options());
+  at::Tensor yz = at::empty({B, C, Y, Z}, v.options());
+  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "axis_pool_cpu", [&] {
+    const scalar_t* pv = v.data_ptr<scalar_t>();
+    scalar_t* pxy = xy.data_ptr<scalar_t>();
+    scalar_t* pxz = xz.data_ptr<scalar_t>();
+    scalar_t* pyz = yz.data_ptr<scalar_t>();
+    at::parallel_for(0, B * C, 1, [&](int64_t s0, int64_t s1) {
+      for (int64_t s = s0; s < s1; ++s) {
+        pool_slab(pv + s * X * Y * Z, pxy + s * X * Y, pxz + s * X * Z, pyz + s * Y * Z, X, Y, Z);
+      }
+    });
+  });
+  return {xy, xz, yz};
+}
+
+at::Tensor axis_pool_backward_cpu(const at::Tensor& grad_xy, const at::Tensor& grad_xz,
+                                  const at::Tensor& grad_yz) {
+  check_dim(grad_xy, kOpBwd, "grad_xy", 4, "[B, C, X, Y]");
+  check_dim(grad_xz, kOpBwd, "grad_xz", 4, "[B, C, X, Z]");
+  check_dim(grad_yz, kOpBwd, "grad_yz", 4, "[B, C, Y, Z]");
+  check_float_dtype(grad_xy, kOpBwd, "grad_xy");
+  check_same_dtype(grad_xz, grad_xy, kOpBwd, "grad_xz", "grad_xy");
+  check_same_dtype(grad_yz, grad_xy, kOpBwd, "grad_yz", "grad_xy");
+  check_same_device(grad_xz, grad_xy, kOpBwd, "grad_xz", "grad_xy");
+  check_same_device(grad_yz, grad_xy, kOpBwd, "grad_yz", "grad_xy");
+  const int64_t B = grad_xy.size(0), C = grad_xy.size(1), X = grad_xy.size(2),
+                Y = grad_xy.size(3), Z = grad_xz.size(3);
+  check_size(grad_xz, kOpBwd, "grad_xz", 0, B, "batch, as grad_xy");
+  check_size(grad_xz, kOpBwd, "grad_xz", 1, C, "channels, as grad_xy");
+  check_size(grad_xz, kOpBwd, "grad_xz", 2, X, "X, as grad_xy.shape[2]");
+  check_size(grad_yz, kOpBwd, "grad_yz", 0, B, "batch, as grad_xy");
+  check_size(grad_yz, kOpBwd, "grad_yz", 1, C, "channels, as grad_xy");
+  check_size(grad_yz, kOpBwd, "grad_yz", 2, Y, "Y, as grad_xy.shape[3]");
+  check_size(grad_yz, kOpBwd, "grad_yz", 3, Z, "Z, as grad_xz.shape[3]");
+  const at::Tensor gxy = grad_xy.contiguous(), gxz = grad_xz.contiguous(),
+                   gyz = grad_yz.contiguous();
+  at::Tensor out = at::empty({B, C, X, Y, Z}, gxy.options());
+  if (out.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(gxy.scalar_type(), "axis_pool_backward_cpu", [&] {
+    using T = scalar_t;
+    const T inv_x = T(1) / T(X), inv_y = T(1) / T(Y), inv_z = T(1) / T(Z);
+    const T* a = gxy.data_ptr<T>();
+    const T* b = gxz.data_ptr<T>();
+    const T* c = gyz.data_ptr<T>();
+    T* o = out.data_ptr<T>();
+    at::parallel_for(0, B * C * X, 1, [&](int64_t r0, int64_t r1) {
+      for (int64_t r = r0; r < r1; ++r) {  // r = (slab, x)
+        const int64_t s = r / X;
+        const T* xz_row = b + r * Z;
+        const T* yz_slab = c + s * Y * Z;
+        for (int64_t y = 0; y < Y; ++y) {
+          const T from_xy = a[r * Y + y] * inv_z;
+          T* dst = o + (r * Y + y) * Z;
+          const T* yz_row = yz_slab + y * Z;
+          for (int64_t z = 0; z < Z; ++z) {
+            dst[z] = from_xy + xz_row[z] * inv_y + yz_row[z] * inv_x;
+          }
+        }
+      }
+    });
+  });
+  return out;
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(t3fast, CPU, m) {
+  m.impl("axis_pool", &axis_pool_cpu);
+  m.impl("axis_pool_backward", &axis_pool_backward_cpu);
+}
+
+}  // namespace t3fast

@@ -1,0 +1,135 @@
+// CPU kernels of delta_fuse: next = delta + weight @ prev + bias per pixel, and its backward.
+// The pixels of each batch element are cut into cache-sized blocks; per block the output is
+// initialised from delta + bias and the 1x1 convolution is accumulated into it by one GEMM
+// (beta = 1), so delta, prev and the output each cross memory once.
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include "checks.h"
+
+namespace t3fast {
+namespace {
+
+constexpr const char* kOp = "delta_fuse";
+constexpr const char* kOpBwd = "delta_fuse_backward";
+constexpr int64_t kBlock = 512;  // pixels per block: 64 channels x 512 floats = 128 KiB
+
+struct Blocks {
+  int64_t B, HW, per_batch, total;
+  Blocks(int64_t b, int64_t hw) : B(b), HW(hw), per_batch((hw + kBlock - 1) / kBlock) {
+    total = B * per_batch;
+  }
+  // (batch, first pixel, pixel count) of block i
+  void get(int64_t i, int64_t& b, int64_t& p0, int64_t& n) const {
+    b = i / per_batch;
+    p0 = (i % per_batch) * kBlock;
+    n = std::min(kBlock, HW - p0);
+  }
+};
+
+void check_prev_weight(const at::Tensor& prev, const at::Tensor& weight, const char* op) {
+  check_dim(prev, op, "prev", 4, "[B, C_in, H, W]");
+  check_dim(weight, op, "weight", 2, "[C, C_in]");
+  check_float_dtype(prev, op, "prev");
+  check_same_dtype(weight, prev, op, "weight", "prev");
+  check_same_device(weight, prev, op, "weight", "prev");
+  check_size(weight, op, "weight", 1, prev.size(1), "C_in, as prev.shape[1]");
+}
+
+at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
+                          const at::Tensor& weight, const c10::optional<at::Tensor>& bias) {
+  check_dim(delta, kOp, "delta", 4, "[B, C, H, W]");
+  check_float_dtype(delta, kOp, "delta");
+  check_prev_weight(prev, weight, kOp);
+  check_same_dtype(prev, delta, kOp, "prev", "delta");
+  check_same_device(prev, delta, kOp, "prev", "delta");
+  check_size(prev, kOp, "prev", 0, delta.size(0), "batch, as delta");
+  check_size(prev, kOp, "prev", 2, delta.size(2), "H, as delta");
+  check_size(prev, kOp, "prev", 3, delta.size(3), "W, as delta");
+  check_size(weight, kOp, "weight", 0, delta.size(1), "C, as delta.shape[1]");
+  if (bias.has_value()) {
+    check_dim(*bias, kOp, "bias", 1, "[C]");
+    check_same_dtype(*bias, delta, kOp, "bias", "delta");
+    check_same_device(*bias, delta, kOp, "bias", "delta");
+    check_size(*bias, kOp, "bias", 0, delta.size(1), "C, as delta.shape[1]");
+  }
+  const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
+  const int64_t HW = delta.size(2) * delta.size(3);
+  const at::Tensor d = delta.contiguous().view({B, C, HW});
+  const at::Tensor pv = prev.contiguous().view({B, Cin, HW});
+  const at::Tensor w = weight.contiguous();
+  at::Tensor out = at::empty_like(d);
+  if (out.numel() == 0) return out.view(delta.sizes());
+  const Blocks blocks(B, HW);
+  const at::Tensor bias_c = bias.has_value() ? bias->contiguous() : at::Tensor();
+  AT_DISPATCH_FLOATING_TYPES(d.scalar_type(), "delta_fuse_cpu", [&] {
+    using T = scalar_t;
+    const T* pd = d.data_ptr<T>();
+    const T* pb = bias_c.defined() ? bias_c.data_ptr<T>() : nullptr;
+    T* po = out.data_ptr<T>();
+    at::parallel_for(0, blocks.total, 1, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        int64_t b, p0, n;
+        blocks.get(i, b, p0, n);
+        for (int64_t c = 0; c < C; ++c) {
+          const T* src = pd + (b * C + c) * HW + p0;
+          T* dst = po + (b * C + c) * HW + p0;
+          const T add = pb != nullptr ? pb[c] : T(0);
+          for (int64_t k = 0; k < n; ++k) dst[k] = src[k] + add;
+        }
+        at::Tensor dst = out[b].narrow(1, p0, n);
+        dst.addmm_(w, pv[b].narrow(1, p0, n));
+      }
+    });
+  });
+  return out.view(delta.sizes());
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
+    const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
+  check_prev_weight(prev, weight, kOpBwd);
+  check_dim(grad_out, kOpBwd, "grad_out", 4, "[B, C, H, W]");
+  check_same_dtype(grad_out, prev, kOpBwd, "grad_out", "prev");
+  check_same_device(grad_out, prev, kOpBwd, "grad_out", "prev");
+  check_size(grad_out, kOpBwd, "grad_out", 0, prev.size(0), "batch, as prev");
+  check_size(grad_out, kOpBwd, "grad_out", 1, weight.size(0), "C, as weight.shape[0]");
+  check_size(grad_out, kOpBwd, "grad_out", 2, prev.size(2), "H, as prev");
+  check_size(grad_out, kOpBwd, "grad_out", 3, prev.size(3), "W, as prev");
+  const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
+  const int64_t HW = prev.size(2) * prev.size(3);
+  const at::Tensor g = grad_out.contiguous().view({B, C, HW});
+  const at::Tensor pv = prev.contiguous().view({B, Cin, HW});
+  const at::Tensor w = weight.contiguous();
+  at::Tensor grad_prev = at::empty({B, Cin, HW}, pv.options());
+  const Blocks blocks(B, HW);
+  // Per-thread partial sums of the weight and bias gradients.
+  const int64_t threads = at::get_num_threads();
+  at::Tensor gw = at::zeros({threads, C, Cin}, pv.options());
+  at::Tensor gb = at::zeros({threads, C}, pv.options());
+  at::parallel_for(0, blocks.total, 1, [&](int64_t i0, int64_t i1) {
+    const int64_t tid = at::get_thread_num();
+    TORCH_INTERNAL_ASSERT(tid < threads);
+    at::Tensor gw_t = gw[tid], gb_t = gb[tid];
+    for (int64_t i = i0; i < i1; ++i) {
+      int64_t b, p0, n;
+      blocks.get(i, b, p0, n);
+      const at::Tensor g_blk = g[b].narrow(1, p0, n);
+      const at::Tensor p_blk = pv[b].narrow(1, p0, n);
+      at::Tensor gp_blk = grad_prev[b].narrow(1, p0, n);
+      at::mm_out(gp_blk, w.t(), g_blk);
+      gw_t.addmm_(g_blk, p_blk.t());
+      gb_t.add_(g_blk.sum(1));
+    }
+  });
+  return {grad_prev.view(prev.sizes()), gw.sum(0), gb.sum(0)};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(t3fast, CPU, m) {
+  m.impl("delta_fuse", &delta_fuse_cpu);
+  m.impl("delta_fuse_backward", &delta_fuse_backward_cpu);
+}
+
+}  // namespace t3fast

@@ -1,0 +1,63 @@
+// Operator schemas of the t3fast library and the Python module of the extension.
+// Kernels are registered per backend in csrc/cpu/*.cpp (CPU) and csrc/cuda/*.cpp (CUDA);
+// a build without CUDA simply has no CUDA registrations.
+#include <torch/extension.h>
+#include <torch/library.h>
+#include <torch/version.h>
+
+#ifndef T3FAST_WITH_CUDA
+#define T3FAST_WITH_CUDA 0
+#endif
+#ifndef T3FAST_CUDA_VERSION
+#define T3FAST_CUDA_VERSION -1
+#endif
+
+TORCH_LIBRARY(t3fast, m) {
+  // Fused query-sum-decode of a triplane. Exactly one of points [B, N, 3] / grid (X, Y, Z).
+  // Returns logits [B, N, K] / [B, X, Y, Z, K], or uint8 labels [B, N] / [B, X, Y, Z] when
+  // argmax is set.
+  m.def(
+      "triplane_decode(Tensor xy, Tensor xz, Tensor yz, Tensor[] weights, Tensor[] biases, "
+      "Tensor? points, int[]? grid, int pe_freqs, bool argmax) -> Tensor");
+  // Gradients of the logits with respect to the planes, weights and biases.
+  m.def(
+      "triplane_decode_backward(Tensor grad_out, Tensor xy, Tensor xz, Tensor yz, "
+      "Tensor[] weights, Tensor[] biases, Tensor? points, int[]? grid, int pe_freqs) "
+      "-> (Tensor, Tensor, Tensor, Tensor[], Tensor[])");
+  // [B, C, X, Y, Z] -> (mean over Z [B, C, X, Y], mean over Y [B, C, X, Z],
+  //                     mean over X [B, C, Y, Z]), reading the volume once.
+  m.def("axis_pool(Tensor volume) -> (Tensor, Tensor, Tensor)");
+  m.def("axis_pool_backward(Tensor grad_xy, Tensor grad_xz, Tensor grad_yz) -> Tensor");
+  // delta [B, C, H, W] + conv1x1(prev [B, C_in, H, W]; weight [C, C_in]) + bias [C].
+  m.def("delta_fuse(Tensor delta, Tensor prev, Tensor weight, Tensor? bias) -> Tensor");
+  // -> (grad_prev, grad_weight, grad_bias); grad_delta is grad_out itself.
+  m.def(
+      "delta_fuse_backward(Tensor grad_out, Tensor prev, Tensor weight) "
+      "-> (Tensor, Tensor, Tensor)");
+}
+
+namespace {
+
+py::dict build_info() {
+  py::dict info;
+  info["cpu"] = true;
+  info["cuda"] = static_cast<bool>(T3FAST_WITH_CUDA);
+  info["cuda_version"] = T3FAST_CUDA_VERSION;  // major * 1000 + minor * 10, -1 without CUDA
+  // the torch the extension was compiled against
+  info["torch_version"] = std::to_string(TORCH_VERSION_MAJOR) + "." +
+                          std::to_string(TORCH_VERSION_MINOR) + "." +
+                          std::to_string(TORCH_VERSION_PATCH);
+#ifdef _OPENMP
+  info["openmp"] = true;
+#else
+  info["openmp"] = false;
+#endif
+  return info;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "Compiled operators of t3fast (registered under torch.ops.t3fast)";
+  m.def("build_info", &build_info, "How this extension was built");
+}

@@ -1,0 +1,110 @@
+"""The fused operators of t3fast.
+
+Each has a pure-PyTorch twin with the same signature in :mod:`t3fast.ops.reference`. The
+compiled kernels are also reachable as ``torch.ops.t3fast.<name>`` once this module is
+imported.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from torch import Tensor
+
+from t3fast.ops import reference
+from t3fast.ops._registration import _C, ops
+
+__all__ = ["axis_pool", "build_info", "delta_fuse", "reference", "triplane_decode"]
+
+
+def build_info() -> dict[str, Any]:
+    """How the compiled extension was built.
+
+    Returns:
+        ``{"cpu": True, "cuda": bool, "cuda_version": int (major*1000 + minor*10, -1 without
+        CUDA), "torch_version": str, "openmp": bool}``.
+    """
+    return dict(_C.build_info())
+
+
+def triplane_decode(
+    xy: Tensor,
+    xz: Tensor,
+    yz: Tensor,
+    weights: Sequence[Tensor],
+    biases: Sequence[Tensor],
+    *,
+    grid: Sequence[int] | None = None,
+    points: Tensor | None = None,
+    pe_freqs: int = 6,
+    argmax: bool = False,
+) -> Tensor:
+    """Fused triplane query -> sum -> positional encoding -> MLP decode.
+
+    For each query point (x, y, z) in [-1, 1]^3 the three planes are looked up bilinearly
+    (``F.grid_sample`` with ``align_corners=False``, ``padding_mode="border"``; xy at (x, y)
+    with x along dim -2, xz at (x, z), yz at (y, z)), the three C-vectors are summed, the
+    encoding ``[sin(2^0 x), sin(2^0 y), sin(2^0 z), cos(2^0 x), cos(2^0 y), cos(2^0 z),
+    sin(2^1 x), ...]`` (6 * pe_freqs values) is appended, and the MLP (ReLU between layers,
+    none after the last) maps the features to class logits.
+
+    Args:
+        xy: ``[B, C, X', Y']`` plane.
+        xz: ``[B, C, X', Z']`` plane.
+        yz: ``[B, C, Y', Z']`` plane.
+        weights: per layer ``[out_i, in_i]`` (``nn.Linear`` layout), ``in_0 = C + 6 * pe_freqs``.
+        biases: per layer ``[out_i]``.
+        grid: ``(X, Y, Z)``: query every voxel centre ``(2 i + 1) / N - 1`` of that grid.
+        points: ``[B, N, 3]`` query coordinates (x, y, z); they receive no gradient.
+        pe_freqs: number of encoding frequencies F.
+        argmax: return the first-maximum class as uint8 instead of logits (no logits
+            tensor is ever allocated; needs at most 256 classes).
+
+    Returns:
+        logits ``[B, X, Y, Z, K]`` (grid) or ``[B, N, K]`` (points); with ``argmax`` uint8
+        labels ``[B, X, Y, Z]`` or ``[B, N]``.
+
+    Exactly one of ``grid`` and ``points`` must be given. Differentiable with respect to
+    the planes, weights and biases (not the points). float32/float64 on CPU, also
+    float16/bfloat16 on CUDA.
+    """
+    return ops.triplane_decode.default(
+        xy,
+        xz,
+        yz,
+        list(weights),
+        list(biases),
+        points,
+        None if grid is None else [int(n) for n in grid],
+        int(pe_freqs),
+        bool(argmax),
+    )
+
+
+def axis_pool(volume: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Three axis means of a volume in one read.
+
+    Args:
+        volume: ``[B, C, X, Y, Z]``.
+
+    Returns:
+        ``xy [B, C, X, Y]`` (mean over Z), ``xz [B, C, X, Z]`` (mean over Y),
+        ``yz [B, C, Y, Z]`` (mean over X).
+    """
+    return ops.axis_pool.default(volume)
+
+
+def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``next = delta + conv1x1(prev) + bias`` in one pass.
+
+    Args:
+        delta: ``[B, C, H, W]`` predicted change.
+        prev: ``[B, C_in, H, W]`` previous plane.
+        weight: ``[C, C_in]`` 1x1 convolution weight.
+        bias: ``[C]`` or None.
+
+    Returns:
+        ``[B, C, H, W]``.
+    """
+    return ops.delta_fuse.default(delta, prev, weight, bias)

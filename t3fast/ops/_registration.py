@@ -1,0 +1,138 @@
+"""Loads the compiled kernels and teaches torch about them: fake (meta) kernels so that
+``torch.compile`` can trace the ops, and autograd formulas whose backward passes are
+themselves registered ops."""
+
+from __future__ import annotations
+
+import torch
+
+try:
+    from t3fast import _C
+except ImportError as exc:  # pragma: no cover - depends on the installation
+    raise ImportError(
+        "t3fast's compiled operators are not built. Install the package with "
+        "`pip install --no-build-isolation -e .` (needs a C++ compiler and ninja)."
+    ) from exc
+
+
+def _check_torch_version() -> None:
+    built = _C.build_info()["torch_version"]
+    running = torch.__version__.split("+")[0]
+    if built.split(".")[:2] != running.split(".")[:2]:
+        raise ImportError(
+            f"t3fast was compiled against torch {built} but torch {running} is running; "
+            "rebuild it with `pip install --no-build-isolation -e .`"
+        )
+
+
+_check_torch_version()
+
+ops = torch.ops.t3fast
+
+
+# ---------------------------------------------------------------- triplane_decode
+@torch.library.register_fake("t3fast::triplane_decode")
+def _triplane_decode_fake(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax):
+    torch._check(xy.dim() == 4, lambda: f"xy must have 4 dims, got {xy.dim()}")
+    torch._check(len(weights) > 0, lambda: "weights must hold at least one layer")
+    torch._check((points is None) != (grid is None), lambda: "exactly one of grid/points")
+    shape = (xy.shape[0], *grid) if grid is not None else (xy.shape[0], points.shape[1])
+    if argmax:
+        return xy.new_empty(shape, dtype=torch.uint8)
+    return xy.new_empty((*shape, weights[-1].shape[0]))
+
+
+@torch.library.register_fake("t3fast::triplane_decode_backward")
+def _triplane_decode_backward_fake(grad_out, xy, xz, yz, weights, biases, points, grid, pe_freqs):
+    return (
+        torch.empty_like(xy),
+        torch.empty_like(xz),
+        torch.empty_like(yz),
+        [torch.empty_like(w) for w in weights],
+        [torch.empty_like(b) for b in biases],
+    )
+
+
+def _triplane_decode_setup(ctx, inputs, output):
+    xy, xz, yz, weights, biases, points, grid, pe_freqs, _ = inputs
+    ctx.layers = len(weights)
+    ctx.grid = grid
+    ctx.pe_freqs = pe_freqs
+    ctx.save_for_backward(xy, xz, yz, points, *weights, *biases)
+
+
+def _triplane_decode_backward(ctx, grad):
+    xy, xz, yz, points, *params = ctx.saved_tensors
+    weights, biases = params[: ctx.layers], params[ctx.layers :]
+    gxy, gxz, gyz, gw, gb = ops.triplane_decode_backward.default(
+        grad, xy, xz, yz, weights, biases, points, ctx.grid, ctx.pe_freqs
+    )
+    # query points and the integer arguments get no gradient
+    return gxy, gxz, gyz, list(gw), list(gb), None, None, None, None
+
+
+torch.library.register_autograd(
+    "t3fast::triplane_decode", _triplane_decode_backward, setup_context=_triplane_decode_setup
+)
+
+
+# ---------------------------------------------------------------- axis_pool
+@torch.library.register_fake("t3fast::axis_pool")
+def _axis_pool_fake(volume):
+    torch._check(volume.dim() == 5, lambda: f"volume must have 5 dims, got {volume.dim()}")
+    b, c, x, y, z = volume.shape
+    return volume.new_empty((b, c, x, y)), volume.new_empty((b, c, x, z)), volume.new_empty(
+        (b, c, y, z)
+    )
+
+
+@torch.library.register_fake("t3fast::axis_pool_backward")
+def _axis_pool_backward_fake(grad_xy, grad_xz, grad_yz):
+    b, c, x, y = grad_xy.shape
+    return grad_xy.new_empty((b, c, x, y, grad_xz.shape[3]))
+
+
+def _axis_pool_setup(ctx, inputs, output):
+    pass
+
+
+def _axis_pool_backward(ctx, grad_xy, grad_xz, grad_yz):
+    return ops.axis_pool_backward.default(grad_xy, grad_xz, grad_yz)
+
+
+torch.library.register_autograd(
+    "t3fast::axis_pool", _axis_pool_backward, setup_context=_axis_pool_setup
+)
+
+
+# ---------------------------------------------------------------- delta_fuse
+@torch.library.register_fake("t3fast::delta_fuse")
+def _delta_fuse_fake(delta, prev, weight, bias):
+    torch._check(delta.dim() == 4, lambda: f"delta must have 4 dims, got {delta.dim()}")
+    return torch.empty_like(delta, memory_format=torch.contiguous_format)
+
+
+@torch.library.register_fake("t3fast::delta_fuse_backward")
+def _delta_fuse_backward_fake(grad_out, prev, weight):
+    return (
+        torch.empty_like(prev, memory_format=torch.contiguous_format),
+        torch.empty_like(weight),
+        weight.new_empty((weight.shape[0],)),
+    )
+
+
+def _delta_fuse_setup(ctx, inputs, output):
+    _, prev, weight, bias = inputs
+    ctx.has_bias = bias is not None
+    ctx.save_for_backward(prev, weight)
+
+
+def _delta_fuse_backward(ctx, grad):
+    prev, weight = ctx.saved_tensors
+    grad_prev, grad_weight, grad_bias = ops.delta_fuse_backward.default(grad, prev, weight)
+    return grad, grad_prev, grad_weight, grad_bias if ctx.has_bias else None
+
+
+torch.library.register_autograd(
+    "t3fast::delta_fuse", _delta_fuse_backward, setup_context=_delta_fuse_setup
+)

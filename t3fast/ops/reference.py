@@ -1,0 +1,128 @@
+"""Pure-PyTorch references of the fused operators: same signatures, same results.
+
+They are the ground truth the C++/CUDA kernels are tested against, and the fallback for
+devices without a compiled kernel. They materialise every intermediate tensor, which is
+exactly what the fused kernels avoid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def grid_coordinates(
+    grid: Sequence[int], device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+) -> Tensor:
+    """Voxel-centre coordinates of an ``X x Y x Z`` grid, ``q = (2 i + 1) / N - 1``.
+
+    Returns:
+        ``[X, Y, Z, 3]`` tensor of (x, y, z) in (-1, 1).
+    """
+    axes = [(2 * torch.arange(n, device=device, dtype=dtype) + 1) / n - 1 for n in grid]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+
+
+def positional_encoding(coords: Tensor, pe_freqs: int) -> Tensor:
+    """Sin/cos encoding of coordinates.
+
+    Args:
+        coords: ``[..., 3]`` (x, y, z).
+        pe_freqs: number of frequencies F.
+
+    Returns:
+        ``[..., 6 F]`` ordered ``[sin(2^0 x), sin(2^0 y), sin(2^0 z), cos(2^0 x), cos(2^0 y),
+        cos(2^0 z), sin(2^1 x), ...]``.
+    """
+    parts = []
+    for k in range(pe_freqs):
+        scaled = coords * (2.0**k)
+        parts += [torch.sin(scaled), torch.cos(scaled)]
+    if not parts:
+        return coords.new_zeros(*coords.shape[:-1], 0)
+    return torch.cat(parts, dim=-1)
+
+
+def _sample(plane: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
+    """Bilinear, border-clamped lookup of ``plane [B, C, H, W]`` at ``rows``/``cols`` [B, N].
+
+    Returns ``[B, N, C]``. ``rows`` index dim -2, ``cols`` dim -1 (grid_sample's y and x).
+    """
+    grid = torch.stack([cols, rows], dim=-1).unsqueeze(1)  # [B, 1, N, 2]
+    out = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return out[:, :, 0].transpose(1, 2)
+
+
+def triplane_features(xy: Tensor, xz: Tensor, yz: Tensor, points: Tensor, pe_freqs: int) -> Tensor:
+    """Decoder input features of query points: ``[xy + xz + yz sample, PE]``.
+
+    Args:
+        xy, xz, yz: ``[B, C, X', Y']``, ``[B, C, X', Z']``, ``[B, C, Y', Z']``.
+        points: ``[B, N, 3]`` (x, y, z) in [-1, 1].
+
+    Returns:
+        ``[B, N, C + 6 * pe_freqs]``.
+    """
+    x, y, z = points.unbind(-1)
+    summed = _sample(xy, x, y) + _sample(xz, x, z) + _sample(yz, y, z)
+    return torch.cat([summed, positional_encoding(points, pe_freqs)], dim=-1)
+
+
+def mlp(features: Tensor, weights: Sequence[Tensor], biases: Sequence[Tensor]) -> Tensor:
+    """Linear layers with ReLU between them (none after the last)."""
+    h = features
+    for i, (w, b) in enumerate(zip(weights, biases)):
+        h = F.linear(h, w, b)
+        if i + 1 < len(weights):
+            h = torch.relu(h)
+    return h
+
+
+def triplane_decode(
+    xy: Tensor,
+    xz: Tensor,
+    yz: Tensor,
+    weights: Sequence[Tensor],
+    biases: Sequence[Tensor],
+    *,
+    grid: Sequence[int] | None = None,
+    points: Tensor | None = None,
+    pe_freqs: int = 6,
+    argmax: bool = False,
+) -> Tensor:
+    """Reference of :func:`t3fast.ops.triplane_decode` (see there for the contract)."""
+    if (grid is None) == (points is None):
+        raise ValueError("t3fast.triplane_decode: exactly one of grid and points must be given")
+    batch = xy.shape[0]
+    if grid is not None:
+        coords = grid_coordinates(grid, device=xy.device, dtype=xy.dtype)
+        query = coords.reshape(1, -1, 3).expand(batch, -1, -1)
+        out_shape = (batch, *grid)
+    else:
+        query = points
+        out_shape = tuple(points.shape[:2])
+    logits = mlp(triplane_features(xy, xz, yz, query, pe_freqs), weights, biases)
+    if argmax:
+        return logits.argmax(-1).to(torch.uint8).reshape(out_shape)
+    return logits.reshape(*out_shape, logits.shape[-1])
+
+
+def axis_pool(volume: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Axis means of ``volume [B, C, X, Y, Z]``.
+
+    Returns:
+        ``xy [B, C, X, Y]`` (mean over Z), ``xz [B, C, X, Z]`` (over Y),
+        ``yz [B, C, Y, Z]`` (over X).
+    """
+    return volume.mean(dim=4), volume.mean(dim=3), volume.mean(dim=2)
+
+
+def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """``delta [B, C, H, W] + conv1x1(prev [B, C_in, H, W], weight [C, C_in]) + bias [C]``."""
+    out = delta + torch.einsum("oc,bchw->bohw", weight, prev)
+    if bias is not None:
+        out = out + bias[None, :, None, None]
+    return out

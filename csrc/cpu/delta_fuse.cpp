@@ -39,6 +39,9 @@ void check_prev_weight(const at::Tensor& prev, const at::Tensor& weight, const c
 
 at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
                           const at::Tensor& weight, const c10::optional<at::Tensor>& bias) {
+  // The kernel uses ATen ops internally (also on worker threads, which do not inherit this
+  // guard; they only see detached tensors); they must not record autograd history.
+  at::AutoDispatchBelowADInplaceOrView guard;
   check_dim(delta, kOp, "delta", 4, "[B, C, H, W]");
   check_float_dtype(delta, kOp, "delta");
   check_prev_weight(prev, weight, kOp);
@@ -56,9 +59,9 @@ at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
   }
   const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
   const int64_t HW = delta.size(2) * delta.size(3);
-  const at::Tensor d = delta.contiguous().view({B, C, HW});
-  const at::Tensor pv = prev.contiguous().view({B, Cin, HW});
-  const at::Tensor w = weight.contiguous();
+  const at::Tensor d = delta.detach().contiguous().view({B, C, HW});
+  const at::Tensor pv = prev.detach().contiguous().view({B, Cin, HW});
+  const at::Tensor w = weight.detach().contiguous();
   at::Tensor out = at::empty_like(d);
   if (out.numel() == 0) return out.view(delta.sizes());
   const Blocks blocks(B, HW);
@@ -88,6 +91,8 @@ at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
     const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
+  // The kernel uses ATen ops internally; they must not record autograd history.
+  at::AutoDispatchBelowADInplaceOrView guard;
   check_prev_weight(prev, weight, kOpBwd);
   check_dim(grad_out, kOpBwd, "grad_out", 4, "[B, C, H, W]");
   check_same_dtype(grad_out, prev, kOpBwd, "grad_out", "prev");
@@ -98,9 +103,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
   check_size(grad_out, kOpBwd, "grad_out", 3, prev.size(3), "W, as prev");
   const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
   const int64_t HW = prev.size(2) * prev.size(3);
-  const at::Tensor g = grad_out.contiguous().view({B, C, HW});
-  const at::Tensor pv = prev.contiguous().view({B, Cin, HW});
-  const at::Tensor w = weight.contiguous();
+  const at::Tensor g = grad_out.detach().contiguous().view({B, C, HW});
+  const at::Tensor pv = prev.detach().contiguous().view({B, Cin, HW});
+  const at::Tensor w = weight.detach().contiguous();
   at::Tensor grad_prev = at::empty({B, Cin, HW}, pv.options());
   const Blocks blocks(B, HW);
   // Per-thread partial sums of the weight and bias gradients.

@@ -122,15 +122,17 @@ Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tenso
   p.PZ = xz.size(3);
   p.pe_freqs = pe_freqs;
   p.widths = check_mlp(weights, biases, xy, p.C + 6 * pe_freqs, op);
-  p.xy = xy.permute({0, 2, 3, 1}).contiguous();
-  p.xz = xz.permute({0, 2, 3, 1}).contiguous();
-  p.yz = yz.permute({0, 2, 3, 1}).contiguous();
+  // Detached: the worker threads of at::parallel_for do not inherit the caller's dispatch
+  // guards, and the GEMMs they run must not see tensors that require grad.
+  p.xy = xy.detach().permute({0, 2, 3, 1}).contiguous();
+  p.xz = xz.detach().permute({0, 2, 3, 1}).contiguous();
+  p.yz = yz.detach().permute({0, 2, 3, 1}).contiguous();
   for (size_t i = 0; i < weights.size(); ++i) {
-    p.weights.push_back(weights[i].contiguous());
-    p.biases.push_back(biases[i].contiguous());
+    p.weights.push_back(weights[i].detach().contiguous());
+    p.biases.push_back(biases[i].detach().contiguous());
   }
   if (points.has_value()) {
-    p.points = points->contiguous();
+    p.points = points->detach().contiguous();
     p.per_batch = p.points.size(1);
   } else {
     p.GX = (*grid)[0];
@@ -373,6 +375,8 @@ at::Tensor triplane_decode_cpu(const at::Tensor& xy, const at::Tensor& xz, const
                                at::TensorList weights, at::TensorList biases,
                                const c10::optional<at::Tensor>& points,
                                c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
+  // The kernel uses ATen ops internally; they must not record autograd history.
+  at::AutoDispatchBelowADInplaceOrView guard;
   const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOp);
   T3FAST_CHECK(!argmax || p.classes() <= 256, kOp, "argmax=True needs at most 256 classes ",
                "(uint8 labels), got ", p.classes());
@@ -482,6 +486,8 @@ triplane_decode_backward_cpu(const at::Tensor& grad_out, const at::Tensor& xy,
                              const at::Tensor& xz, const at::Tensor& yz, at::TensorList weights,
                              at::TensorList biases, const c10::optional<at::Tensor>& points,
                              c10::OptionalIntArrayRef grid, int64_t pe_freqs) {
+  // The kernel uses ATen ops internally; they must not record autograd history.
+  at::AutoDispatchBelowADInplaceOrView guard;
   const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOpBwd);
   auto shape = p.out_shape();
   shape.push_back(p.classes());
@@ -489,7 +495,7 @@ triplane_decode_backward_cpu(const at::Tensor& grad_out, const at::Tensor& xy,
                at::IntArrayRef(shape), ", got ", grad_out.sizes());
   check_same_dtype(grad_out, xy, kOpBwd, "grad_out", "xy");
   check_same_device(grad_out, xy, kOpBwd, "grad_out", "xy");
-  const at::Tensor go = grad_out.contiguous().view({-1, p.classes()});
+  const at::Tensor go = grad_out.detach().contiguous().view({-1, p.classes()});
   const int64_t total = go.size(0);
   const int64_t chunks = (total + kChunk - 1) / kChunk;
   std::vector<Grads> partial;

@@ -30,12 +30,36 @@ _check_torch_version()
 ops = torch.ops.t3fast
 
 
+def _check_like(op: str, ref_name: str, ref: torch.Tensor, **tensors) -> None:
+    """Device and dtype agreement, checked in the fake kernels as the C++ kernels do, so that
+    tracing and mixed-device calls (which dispatch to the fake kernel) fail the same way."""
+    for name, t in tensors.items():
+        if t is None:
+            continue
+        torch._check(
+            t.device == ref.device,
+            lambda: f"t3fast.{op}: {name} must be on the same device as {ref_name} "
+            f"({ref.device}), got {t.device}",
+        )
+        torch._check(
+            t.dtype == ref.dtype,
+            lambda: f"t3fast.{op}: {name} must have the dtype of {ref_name} ({ref.dtype}), "
+            f"got {t.dtype}",
+        )
+
+
+def _named(prefix: str, tensors) -> dict:
+    return {f"{prefix}[{i}]": t for i, t in enumerate(tensors)}
+
+
 # ---------------------------------------------------------------- triplane_decode
 @torch.library.register_fake("t3fast::triplane_decode")
 def _triplane_decode_fake(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax):
     torch._check(xy.dim() == 4, lambda: f"xy must have 4 dims, got {xy.dim()}")
     torch._check(len(weights) > 0, lambda: "weights must hold at least one layer")
     torch._check((points is None) != (grid is None), lambda: "exactly one of grid/points")
+    _check_like("triplane_decode", "xy", xy, xz=xz, yz=yz, points=points,
+                **_named("weights", weights), **_named("biases", biases))
     shape = (xy.shape[0], *grid) if grid is not None else (xy.shape[0], points.shape[1])
     if argmax:
         return xy.new_empty(shape, dtype=torch.uint8)
@@ -109,6 +133,7 @@ torch.library.register_autograd(
 @torch.library.register_fake("t3fast::delta_fuse")
 def _delta_fuse_fake(delta, prev, weight, bias):
     torch._check(delta.dim() == 4, lambda: f"delta must have 4 dims, got {delta.dim()}")
+    _check_like("delta_fuse", "delta", delta, prev=prev, weight=weight, bias=bias)
     return torch.empty_like(delta, memory_format=torch.contiguous_format)
 
 

@@ -1,0 +1,125 @@
+"""Bad arguments raise errors that name the op, the argument, and expected vs actual."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+import torch
+
+from t3fast.ops import axis_pool, delta_fuse, triplane_decode
+
+from .test_triplane_decode import make_inputs
+
+
+def decode_args(**overrides):
+    planes, weights, biases = make_inputs(2, 4, (5, 6, 3), [8], 1, 5)
+    args = dict(xy=planes[0], xz=planes[1], yz=planes[2], weights=weights, biases=biases,
+                grid=(4, 4, 2), pe_freqs=1)
+    args.update(overrides)
+    return args
+
+
+def call_decode(args):
+    args = dict(args)
+    return triplane_decode(args.pop("xy"), args.pop("xz"), args.pop("yz"), args.pop("weights"),
+                           args.pop("biases"), **args)
+
+
+@pytest.mark.parametrize(
+    "overrides, pattern",
+    [
+        (dict(xy=torch.randn(2, 4, 5)), r"xy must have 4 dims \[B, C, X', Y'\], got 3 dims"),
+        (dict(xz=torch.randn(2, 3, 5, 3)), r"xz\.shape\[1\] \(channels, as xy\) must be 4, got 3"),
+        (dict(yz=torch.randn(2, 4, 7, 3)), r"yz\.shape\[2\] \(Y', as xy\.shape\[3\]\) must be 6"),
+        (dict(yz=torch.randn(3, 4, 6, 3)), r"yz\.shape\[0\] \(batch, as xy\) must be 2, got 3"),
+        (dict(xy=torch.randn(2, 4, 5, 6, dtype=torch.float64)),
+         r"xz must have the dtype of xy \(Double\), got Float"),
+        (dict(xy=torch.randint(0, 3, (2, 4, 5, 6))), r"xy must be float32 or float64 on CPU"),
+        (dict(weights=[torch.randn(8, 11), torch.randn(5, 8)]),
+         r"weights\[0\]\.shape\[1\] \(in features\) must be 10 \(C \+ 6 \* pe_freqs\), got 11"),
+        (dict(weights=[torch.randn(8, 10), torch.randn(5, 7)]),
+         r"weights\[1\]\.shape\[1\] \(in features\) must be 8 \(the previous layer's out"),
+        (dict(biases=[torch.randn(8)]), r"same number of layers, got 2 weights and 1 biases"),
+        (dict(biases=[torch.randn(8), torch.randn(4)]), r"biases\[1\]\.shape\[0\] must be 5"),
+        (dict(weights=[], biases=[]), r"weights must hold at least one layer"),
+        (dict(points=torch.rand(2, 10, 3)), r"exactly one of grid and points must be given, got both"),
+        (dict(grid=None), r"exactly one of grid and points must be given, got neither"),
+        (dict(grid=None, points=torch.rand(2, 10, 2)),
+         r"points\.shape\[2\] \(coordinates \(x, y, z\)\) must be 3, got 2"),
+        (dict(grid=(4, 4)), r"grid must be \(X, Y, Z\), got 2 values"),
+        (dict(grid=(4, -1, 2)), r"grid sizes must be >= 0"),
+        (dict(pe_freqs=-1, weights=[torch.randn(8, 4), torch.randn(5, 8)]),
+         r"pe_freqs must be in \[0, 30\], got -1"),
+    ],
+)
+def test_triplane_decode_rejects(overrides, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.triplane_decode: .*" + pattern):
+        call_decode(decode_args(**overrides))
+
+
+def test_triplane_decode_argmax_needs_few_classes():
+    args = decode_args(weights=[torch.randn(8, 10), torch.randn(300, 8)],
+                       biases=[torch.randn(8), torch.randn(300)], argmax=True)
+    with pytest.raises(RuntimeError, match=r"argmax=True needs at most 256 classes .* got 300"):
+        call_decode(args)
+
+
+def test_mixed_devices_name_the_argument():
+    args = decode_args(xz=torch.randn(2, 4, 5, 3, device="meta"))
+    with pytest.raises(RuntimeError, match=r"xz must be on the same device as xy \(cpu\), got meta"):
+        call_decode(args)
+    with pytest.raises(RuntimeError, match=r"prev must be on the same device as delta"):
+        delta_fuse(torch.randn(1, 2, 3, 3), torch.randn(1, 2, 3, 3, device="meta"),
+                   torch.randn(2, 2))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_cpu_and_cuda_mixed():
+    args = decode_args(xz=torch.randn(2, 4, 5, 3, device="cuda"))
+    with pytest.raises(RuntimeError, match=r"xz must be on the same device as xy"):
+        call_decode(args)
+
+
+def test_backward_op_checks_grad_shape():
+    planes, weights, biases = make_inputs(2, 4, (5, 6, 3), [8], 1, 5)
+    grad = torch.randn(2, 4, 4, 2, 6)
+    with pytest.raises(RuntimeError, match=re.escape("grad_out must have shape [2, 4, 4, 2, 5]")):
+        torch.ops.t3fast.triplane_decode_backward(grad, *planes, weights, biases, None,
+                                                  [4, 4, 2], 1)
+
+
+@pytest.mark.parametrize(
+    "volume, pattern",
+    [
+        (torch.randn(2, 3, 4, 5), r"volume must have 5 dims \[B, C, X, Y, Z\], got 4 dims"),
+        (torch.randn(2, 3, 4, 0, 5), r"volume must have non-empty X, Y, Z"),
+        (torch.ones(1, 1, 2, 2, 2, dtype=torch.int32), r"volume must be float32 or float64"),
+    ],
+)
+def test_axis_pool_rejects(volume, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.axis_pool: .*" + pattern):
+        axis_pool(volume)
+
+
+@pytest.mark.parametrize(
+    "args, pattern",
+    [
+        ((torch.randn(2, 4, 5), torch.randn(2, 3, 5, 6), torch.randn(4, 3)),
+         r"delta must have 4 dims \[B, C, H, W\], got 3 dims"),
+        ((torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 6), torch.randn(4, 2)),
+         r"weight\.shape\[1\] \(C_in, as prev\.shape\[1\]\) must be 3, got 2"),
+        ((torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 6), torch.randn(5, 3)),
+         r"weight\.shape\[0\] \(C, as delta\.shape\[1\]\) must be 4, got 5"),
+        ((torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 7), torch.randn(4, 3)),
+         r"prev\.shape\[3\] \(W, as delta\) must be 6, got 7"),
+        ((torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 6, dtype=torch.float64),
+          torch.randn(4, 3)), r"weight must have the dtype of prev \(Double\), got Float"),
+        ((torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 6), torch.randn(4, 3), torch.randn(3)),
+         r"bias\.shape\[0\] \(C, as delta\.shape\[1\]\) must be 4, got 3"),
+    ],
+)
+def test_delta_fuse_rejects(args, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.delta_fuse: .*" + pattern):
+        delta_fuse(*args)

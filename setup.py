@@ -8,10 +8,9 @@ carries the CUDA kernels. FORCE_CUDA=1 forces the CUDA build, T3FAST_NO_CUDA=1 d
 import glob
 import os
 
+import torch
 from setuptools import setup
 from torch.utils.cpp_extension import CUDA_HOME, BuildExtension, CppExtension, CUDAExtension
-
-import torch
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
 
@@ -36,7 +35,10 @@ def _extension():
     if with_cuda:
         sources += _sources("csrc/cuda/*.cpp") + _sources("csrc/cuda/*.cu")
         major, minor = (int(v) for v in torch.version.cuda.split(".")[:2])
-        macros += [("T3FAST_WITH_CUDA", "1"), ("T3FAST_CUDA_VERSION", str(major * 1000 + minor * 10))]
+        macros += [
+            ("T3FAST_WITH_CUDA", "1"),
+            ("T3FAST_CUDA_VERSION", str(major * 1000 + minor * 10)),
+        ]
         nvcc = ["-O3", "-std=c++17", "--expt-relaxed-constexpr"]
         return CUDAExtension(
             "t3fast._C",

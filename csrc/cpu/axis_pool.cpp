@@ -6,6 +6,7 @@
 #include <torch/library.h>
 
 #include "checks.h"
+#include "cpu/simd.h"
 
 namespace t3fast {
 namespace {
@@ -14,7 +15,7 @@ constexpr const char* kOp = "axis_pool";
 constexpr const char* kOpBwd = "axis_pool_backward";
 
 template <typename T>
-void pool_slab(const T* v, T* xy, T* xz, T* yz, int64_t X, int64_t Y, int64_t Z) {
+T3FAST_SIMD_CLONES void pool_slab(const T* v, T* xy, T* xz, T* yz, int64_t X, int64_t Y, int64_t Z) {
   const T inv_x = T(1) / T(X), inv_y = T(1) / T(Y), inv_z = T(1) / T(Z);
   std::fill(xz, xz + X * Z, T(0));
   std::fill(yz, yz + Y * Z, T(0));
@@ -24,6 +25,7 @@ void pool_slab(const T* v, T* xy, T* xz, T* yz, int64_t X, int64_t Y, int64_t Z)
       const T* row = v + (x * Y + y) * Z;
       T* yz_row = yz + y * Z;
       T sum = T(0);
+#pragma omp simd reduction(+ : sum)
       for (int64_t z = 0; z < Z; ++z) {
         sum += row[z];
         xz_row[z] += row[z];
@@ -34,6 +36,24 @@ void pool_slab(const T* v, T* xy, T* xz, T* yz, int64_t X, int64_t Y, int64_t Z)
     for (int64_t z = 0; z < Z; ++z) xz_row[z] *= inv_y;
   }
   for (int64_t i = 0; i < Y * Z; ++i) yz[i] *= inv_x;
+}
+
+// grad[b, c, x, y, z] = gxy[b, c, x, y] / Z + gxz[b, c, x, z] / Y + gyz[b, c, y, z] / X for the
+// rows r = (b * C + c) * X + x in [r0, r1).
+template <typename T>
+T3FAST_SIMD_CLONES void unpool_rows(const T* gxy, const T* gxz, const T* gyz, T* out,
+                                    int64_t r0, int64_t r1, int64_t X, int64_t Y, int64_t Z) {
+  const T inv_x = T(1) / T(X), inv_y = T(1) / T(Y), inv_z = T(1) / T(Z);
+  for (int64_t r = r0; r < r1; ++r) {
+    const T* xz_row = gxz + r * Z;
+    const T* yz_slab = gyz + (r / X) * Y * Z;
+    for (int64_t y = 0; y < Y; ++y) {
+      const T from_xy = gxy[r * Y + y] * inv_z;
+      T* dst = out + (r * Y + y) * Z;
+      const T* yz_row = yz_slab + y * Z;
+      for (int64_t z = 0; z < Z; ++z) dst[z] = from_xy + xz_row[z] * inv_y + yz_row[z] * inv_x;
+    }
+  }
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& volume) {
@@ -86,25 +106,12 @@ at::Tensor axis_pool_backward_cpu(const at::Tensor& grad_xy, const at::Tensor& g
   if (out.numel() == 0) return out;
   AT_DISPATCH_FLOATING_TYPES(gxy.scalar_type(), "axis_pool_backward_cpu", [&] {
     using T = scalar_t;
-    const T inv_x = T(1) / T(X), inv_y = T(1) / T(Y), inv_z = T(1) / T(Z);
     const T* a = gxy.data_ptr<T>();
     const T* b = gxz.data_ptr<T>();
     const T* c = gyz.data_ptr<T>();
     T* o = out.data_ptr<T>();
     at::parallel_for(0, B * C * X, 1, [&](int64_t r0, int64_t r1) {
-      for (int64_t r = r0; r < r1; ++r) {  // r = (slab, x)
-        const int64_t s = r / X;
-        const T* xz_row = b + r * Z;
-        const T* yz_slab = c + s * Y * Z;
-        for (int64_t y = 0; y < Y; ++y) {
-          const T from_xy = a[r * Y + y] * inv_z;
-          T* dst = o + (r * Y + y) * Z;
-          const T* yz_row = yz_slab + y * Z;
-          for (int64_t z = 0; z < Z; ++z) {
-            dst[z] = from_xy + xz_row[z] * inv_y + yz_row[z] * inv_x;
-          }
-        }
-      }
+      unpool_rows(a, b, c, o, r0, r1, X, Y, Z);
     });
   });
   return out;

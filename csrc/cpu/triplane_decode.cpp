@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "checks.h"
+#include "cpu/simd.h"
 
 namespace t3fast {
 namespace {
@@ -83,8 +84,14 @@ inline void scatter(T* plane, int64_t cols, int64_t n, const Tap<T>& tr, const T
 }
 
 template <typename T>
-inline void relu_inplace(T* x, int64_t n) {
+T3FAST_SIMD_CLONES void relu_inplace(T* x, int64_t n) {
   for (int64_t i = 0; i < n; ++i) x[i] = x[i] > T(0) ? x[i] : T(0);
+}
+
+// ReLU backward: the gradient is zero where the layer's output was clamped.
+template <typename T>
+T3FAST_SIMD_CLONES void relu_backward(T* grad, const T* out, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) grad[i] = out[i] > T(0) ? grad[i] : T(0);
 }
 
 // Everything the kernels need to know about one call, with channels-last planes.
@@ -160,7 +167,7 @@ inline void query_coords(const Problem& p, const T* pts, int64_t n, T& x, T& y, 
 
 // Decoder input features of queries [start, start + count) into feat [count, in_0].
 template <typename T>
-void fill_features(const Problem& p, int64_t start, int64_t count, T* feat) {
+T3FAST_SIMD_CLONES void fill_features(const Problem& p, int64_t start, int64_t count, T* feat) {
   const T* xy = p.xy.data_ptr<T>();
   const T* xz = p.xz.data_ptr<T>();
   const T* yz = p.yz.data_ptr<T>();
@@ -195,6 +202,19 @@ inline at::Tensor view2d(const at::Tensor& flat, int64_t rows, int64_t cols) {
   return flat.narrow(0, 0, rows * cols).view({rows, cols});
 }
 
+// First index of the maximum of each row of logits [rows, K], like torch.argmax.
+template <typename T>
+T3FAST_SIMD_CLONES void argmax_rows(const T* logits, int64_t rows, int64_t K, uint8_t* out) {
+  for (int64_t r = 0; r < rows; ++r) {
+    const T* row = logits + r * K;
+    int64_t best = 0;
+    for (int64_t k = 1; k < K; ++k) {
+      if (row[k] > row[best]) best = k;
+    }
+    out[r] = static_cast<uint8_t>(best);
+  }
+}
+
 // Writes a chunk's result: logits rows, or the first-max class as uint8.
 template <typename T>
 void emit(const at::Tensor& logits_chunk, at::Tensor& out, int64_t start, bool argmax) {
@@ -203,16 +223,7 @@ void emit(const at::Tensor& logits_chunk, at::Tensor& out, int64_t start, bool a
     out.view({-1, K}).narrow(0, start, rows).copy_(logits_chunk);
     return;
   }
-  const T* l = logits_chunk.data_ptr<T>();
-  uint8_t* o = out.data_ptr<uint8_t>() + start;
-  for (int64_t r = 0; r < rows; ++r) {
-    const T* row = l + r * K;
-    int64_t best = 0;
-    for (int64_t k = 1; k < K; ++k) {
-      if (row[k] > row[best]) best = k;
-    }
-    o[r] = static_cast<uint8_t>(best);
-  }
+  argmax_rows(logits_chunk.data_ptr<T>(), rows, K, out.data_ptr<uint8_t>() + start);
 }
 
 // Layers first..L-1 on a chunk whose input activations are `h` [rows, widths[first]].
@@ -282,6 +293,23 @@ at::Tensor axis_encoding_contribution(const Problem& p, int axis, int64_t n) {
   return at::mm(enc, w.t());  // [n, H0]
 }
 
+template <typename T>
+T3FAST_SIMD_CLONES void fill_table_rows(T* table, int64_t r0, int64_t r1, const T* proj,
+                                        int64_t cols, int64_t H, const Tap<T>* tr,
+                                        const Tap<T>* tc, int64_t S, const T* row_add,
+                                        const T* col_add, const T* bias) {
+  for (int64_t r = r0; r < r1; ++r) {
+    for (int64_t s = 0; s < S; ++s) {
+      T* o = table + (r * S + s) * H;
+      std::fill(o, o + H, T(0));
+      if (row_add != nullptr) axpy(o, row_add + r * H, T(1), H);
+      if (col_add != nullptr) axpy(o, col_add + s * H, T(1), H);
+      if (bias != nullptr) axpy(o, bias, T(1), H);
+      lookup(o, proj, cols, H, tr[r], tc[s]);
+    }
+  }
+}
+
 // table[r, s, :] = lookup of the projected plane [rows, cols, H] at (row tap r, col tap s)
 // + sum of the optional per-row [R, H] / per-column [S, H] / constant [H] terms.
 template <typename T>
@@ -294,16 +322,7 @@ at::Tensor sample_table(const at::Tensor& proj, int64_t cols, const std::vector<
   const T* pr = proj.data_ptr<T>();
   T* t = table.data_ptr<T>();
   at::parallel_for(0, R, 1, [&](int64_t r0, int64_t r1) {
-    for (int64_t r = r0; r < r1; ++r) {
-      for (int64_t s = 0; s < S; ++s) {
-        T* o = t + (r * S + s) * H;
-        std::fill(o, o + H, T(0));
-        if (row_add != nullptr) axpy(o, row_add + r * H, T(1), H);
-        if (col_add != nullptr) axpy(o, col_add + s * H, T(1), H);
-        if (bias != nullptr) axpy(o, bias, T(1), H);
-        lookup(o, pr, cols, H, tr[r], tc[s]);
-      }
-    }
+    fill_table_rows(t, r0, r1, pr, cols, H, tr.data(), tc.data(), S, row_add, col_add, bias);
   });
   return table;
 }
@@ -318,6 +337,22 @@ std::vector<Tap<T>> axis_taps(int64_t grid_cells, int64_t plane_cells) {
   return taps;
 }
 
+// First-layer pre-activations of voxels [v0, v0 + rows) of one batch element:
+// h[r] = T_xy[i, j] + T_xz[i, k] + T_yz[j, k].
+template <typename T>
+T3FAST_SIMD_CLONES void sum_tables(T* h, int64_t v0, int64_t rows, const T* txy, const T* txz,
+                                   const T* tyz, int64_t GY, int64_t GZ, int64_t H) {
+  for (int64_t r = 0; r < rows; ++r) {
+    const int64_t v = v0 + r;
+    const int64_t i = v / (GY * GZ), j = (v / GZ) % GY, k = v % GZ;
+    const T* a = txy + (i * GY + j) * H;
+    const T* b = txz + (i * GZ + k) * H;
+    const T* c = tyz + (j * GZ + k) * H;
+    T* o = h + r * H;
+    for (int64_t u = 0; u < H; ++u) o[u] = a[u] + b[u] + c[u];
+  }
+}
+
 template <typename T>
 void forward_grid(const Problem& p, at::Tensor& out, bool argmax) {
   const int64_t H0 = p.widths[1], C = p.C, L = p.layers();
@@ -327,7 +362,6 @@ void forward_grid(const Problem& p, at::Tensor& out, bool argmax) {
   const at::Tensor ex = axis_encoding_contribution<T>(p, 0, p.GX);
   const at::Tensor ey = axis_encoding_contribution<T>(p, 1, p.GY);
   const at::Tensor ez = axis_encoding_contribution<T>(p, 2, p.GZ);
-  const int64_t per_x = p.GY * p.GZ;
   const auto opts = p.xy.options();
 
   for (int64_t b = 0; b < p.B; ++b) {
@@ -354,15 +388,7 @@ void forward_grid(const Problem& p, at::Tensor& out, bool argmax) {
         at::Tensor h0 = (L == 1 && !argmax) ? out.view({-1, H0}).narrow(0, start, rows)
                                              : view2d(ping, rows, H0);
         T* h = h0.data_ptr<T>();
-        for (int64_t r = 0; r < rows; ++r) {
-          const int64_t v = v0 + r;
-          const int64_t i = v / per_x, j = (v / p.GZ) % p.GY, k = v % p.GZ;
-          const T* a = Txy + (i * p.GY + j) * H0;
-          const T* bx = Txz + (i * p.GZ + k) * H0;
-          const T* cy = Tyz + (j * p.GZ + k) * H0;
-          T* o = h + r * H0;
-          for (int64_t u = 0; u < H0; ++u) o[u] = a[u] + bx[u] + cy[u];
-        }
+        sum_tables(h, v0, rows, Txy, Txz, Tyz, p.GY, p.GZ, H0);
         if (L > 1) relu_inplace(h, rows * H0);
         at::Tensor logits = run_layers<T>(p, 1, h0, ping, pong, out, start, argmax);
         if (argmax) emit<T>(logits, out, start, true);
@@ -427,7 +453,7 @@ struct Grads {
 // Scatters the feature gradients gf [count, C] of queries [start, start + count) into the
 // three (channels-last) plane gradients.
 template <typename T>
-void scatter_features(const Problem& p, int64_t start, int64_t count, const T* gf, Grads& g) {
+T3FAST_SIMD_CLONES void scatter_features(const Problem& p, int64_t start, int64_t count, const T* gf, Grads& g) {
   T* gxy = g.xy.data_ptr<T>();
   T* gxz = g.xz.data_ptr<T>();
   T* gyz = g.yz.data_ptr<T>();
@@ -469,10 +495,7 @@ void backward_chunk(const Problem& p, const at::Tensor& grad_rows, int64_t start
     at::Tensor next = view2d(grad.data_ptr() == ping.data_ptr() ? pong : ping, rows,
                              p.widths[l]);
     at::mm_out(next, grad, p.weights[l]);
-    // ReLU backward: the output was clamped where the saved activation is zero.
-    T* gn = next.data_ptr<T>();
-    const T* a = in[l].data_ptr<T>();
-    for (int64_t i = 0; i < rows * p.widths[l]; ++i) gn[i] = a[i] > T(0) ? gn[i] : T(0);
+    relu_backward(next.data_ptr<T>(), in[l].data_ptr<T>(), rows * p.widths[l]);
     grad = next;
   }
   // Only the plane features (the first C inputs) have a gradient; PE is constant.

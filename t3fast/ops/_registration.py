@@ -38,13 +38,13 @@ def _check_like(op: str, ref_name: str, ref: torch.Tensor, **tensors) -> None:
             continue
         torch._check(
             t.device == ref.device,
-            lambda: f"t3fast.{op}: {name} must be on the same device as {ref_name} "
-            f"({ref.device}), got {t.device}",
+            lambda name=name, t=t: f"t3fast.{op}: {name} must be on the same device as "
+            f"{ref_name} ({ref.device}), got {t.device}",
         )
         torch._check(
             t.dtype == ref.dtype,
-            lambda: f"t3fast.{op}: {name} must have the dtype of {ref_name} ({ref.dtype}), "
-            f"got {t.dtype}",
+            lambda name=name, t=t: f"t3fast.{op}: {name} must have the dtype of {ref_name} "
+            f"({ref.dtype}), got {t.dtype}",
         )
 
 

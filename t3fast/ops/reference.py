@@ -15,7 +15,9 @@ from torch import Tensor
 
 
 def grid_coordinates(
-    grid: Sequence[int], device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+    grid: Sequence[int],
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> Tensor:
     """Voxel-centre coordinates of an ``X x Y x Z`` grid, ``q = (2 i + 1) / N - 1``.
 

@@ -1,0 +1,108 @@
+"""Occ3D-nuScenes class ids, colour palette and voxel-grid geometry.
+
+Every part of t3fast that touches occupancy labels imports these constants.
+
+Conventions
+-----------
+* Labels are ``uint8`` volumes ``[200, 200, 16]`` indexed ``[x, y, z]``.
+* Ego frame: x forward, y left, z up; metres.
+* Voxel size 0.4 m; x, y in [-40, 40] m, z in [-1, 5.4] m. Voxel ``i`` along
+  an axis has its centre at ``lower + 0.4 * (i + 0.5)``, e.g. x centre
+  ``-40 + 0.4 * (i + 0.5)``.
+* Class ids are Occ3D's: 0..16 semantic classes, 17 ``free``, 255 ``ignore``
+  (never scored, never a training target).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CLASS_NAMES: tuple[str, ...] = (
+    "others",
+    "barrier",
+    "bicycle",
+    "bus",
+    "car",
+    "construction_vehicle",
+    "motorcycle",
+    "pedestrian",
+    "traffic_cone",
+    "trailer",
+    "truck",
+    "driveable_surface",
+    "other_flat",
+    "sidewalk",
+    "terrain",
+    "manmade",
+    "vegetation",
+    "free",
+)
+NUM_CLASSES = len(CLASS_NAMES)  # 18, free included
+CLASS_IDS: dict[str, int] = {name: i for i, name in enumerate(CLASS_NAMES)}
+
+OTHERS = 0
+BARRIER = 1
+BICYCLE = 2
+BUS = 3
+CAR = 4
+CONSTRUCTION_VEHICLE = 5
+MOTORCYCLE = 6
+PEDESTRIAN = 7
+TRAFFIC_CONE = 8
+TRAILER = 9
+TRUCK = 10
+DRIVEABLE_SURFACE = 11
+OTHER_FLAT = 12
+SIDEWALK = 13
+TERRAIN = 14
+MANMADE = 15
+VEGETATION = 16
+FREE = 17
+IGNORE = 255
+
+#: classes of the agents that carry boxes (vehicles and humans), nuScenes detection names
+AGENT_CLASSES: tuple[int, ...] = (BICYCLE, BUS, CAR, CONSTRUCTION_VEHICLE, MOTORCYCLE, PEDESTRIAN, TRAILER, TRUCK)
+
+#: RGB colour per class id, the palette of the Occ3D / SurroundOcc visualisations
+PALETTE = np.array(
+    [
+        [0, 0, 0],  # others
+        [255, 120, 50],  # barrier
+        [255, 192, 203],  # bicycle
+        [255, 255, 0],  # bus
+        [0, 150, 245],  # car
+        [0, 255, 255],  # construction_vehicle
+        [200, 180, 0],  # motorcycle
+        [255, 0, 0],  # pedestrian
+        [255, 240, 150],  # traffic_cone
+        [135, 60, 0],  # trailer
+        [160, 32, 240],  # truck
+        [255, 0, 255],  # driveable_surface
+        [139, 137, 137],  # other_flat
+        [75, 0, 75],  # sidewalk
+        [150, 240, 80],  # terrain
+        [230, 230, 250],  # manmade
+        [0, 175, 0],  # vegetation
+        [255, 255, 255],  # free
+    ],
+    dtype=np.uint8,
+)
+
+# grid geometry
+GRID_SHAPE: tuple[int, int, int] = (200, 200, 16)
+VOXEL_SIZE = 0.4
+GRID_LOWER: tuple[float, float, float] = (-40.0, -40.0, -1.0)
+GRID_UPPER: tuple[float, float, float] = (40.0, 40.0, 5.4)
+
+#: 2 Hz key frames
+FRAME_DT = 0.5
+
+#: ego footprint used by the collision metric (nuScenes ego: width x length, metres)
+EGO_WIDTH = 1.85
+EGO_LENGTH = 4.084
+
+
+def voxel_centers(axis: int) -> np.ndarray:
+    """Centres (metres) of the voxels along ``axis`` (0 = x, 1 = y, 2 = z), shape ``[N]``."""
+    n = GRID_SHAPE[axis]
+    return GRID_LOWER[axis] + VOXEL_SIZE * (np.arange(n) + 0.5)

@@ -1,0 +1,107 @@
+"""``t3fast data ...``: export synthetic scenes, print statistics, render pictures."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+def add_data_commands(sub: argparse._SubParsersAction) -> None:
+    """Register ``data export-synthetic | stats | render`` on the root command's sub-parsers."""
+    data = sub.add_parser("data", help="driving data: synthetic towns and Occ3D-nuScenes")
+    cmds = data.add_subparsers(dest="data_command", required=True)
+
+    exp = cmds.add_parser("export-synthetic", help="write synthetic scenes in the Occ3D-nuScenes layout")
+    exp.add_argument("--out", required=True, help="output directory (gets gts/ and the info pickle)")
+    exp.add_argument("--scenes", type=int, default=10, help="number of scenes")
+    exp.add_argument("--split", default="train", choices=["train", "val", "test"])
+    exp.add_argument("--frames", type=int, default=40, help="2 Hz frames per scene")
+    exp.set_defaults(func=_export)
+
+    stats = cmds.add_parser("stats", help="class frequencies and ego-motion summary of a split")
+    _add_source_args(stats)
+    stats.add_argument("--stride", type=int, default=5, help="window stride for the motion summary")
+    stats.set_defaults(func=_stats)
+
+    render = cmds.add_parser("render", help="render a sample's frames as a top-down PNG strip")
+    _add_source_args(render)
+    render.add_argument("--index", type=int, default=0, help="sample index (windows with stride 1)")
+    render.add_argument("--frames", default="0,2,4,6,8,10", help="comma-separated frames of the 11-frame window")
+    render.add_argument("--scale", type=int, default=1, help="pixels per voxel")
+    render.add_argument("--mask", action="store_true", help="darken voxels outside mask_camera")
+    render.add_argument("--out", default="sample.png", help="PNG path")
+    render.set_defaults(func=_render)
+
+
+def _add_source_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--split", default="val", choices=["train", "val", "test"], help="synthetic split")
+    p.add_argument("--scenes", type=int, default=8, help="synthetic scenes to use")
+    p.add_argument("--frames-per-scene", type=int, default=40)
+    p.add_argument("--root", type=Path, help="read Occ3D-layout data from this directory instead")
+    p.add_argument("--info", type=Path, help="info pickle for --root")
+
+
+def _dataset(args: argparse.Namespace, stride: int):
+    if args.root is not None:
+        from t3fast.data.occ3d import Occ3DNuScenes
+
+        if args.info is None:
+            raise SystemExit("--root needs --info")
+        return Occ3DNuScenes(args.root, args.info, stride=stride)
+    from t3fast.data.synthetic.dataset import SyntheticDriving
+
+    return SyntheticDriving(args.split, args.scenes, args.frames_per_scene, stride=stride)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from t3fast.data.export import export_synthetic
+
+    start = time.perf_counter()
+    info = export_synthetic(args.out, args.split, args.scenes, args.frames)
+    print(f"wrote {args.scenes} scenes to {args.out} ({time.perf_counter() - start:.1f} s); info: {info}")
+    return 0
+
+
+def _stats(args: argparse.Namespace) -> int:
+    from t3fast.data.stats import class_counts, format_class_table, format_motion_summary
+
+    if args.root is None:
+        from t3fast.data.synthetic.dataset import SyntheticScenes
+
+        scenes = SyntheticScenes(args.split, args.scenes, args.frames_per_scene)
+        start = time.perf_counter()
+        vols = []
+        for k in tqdm(range(len(scenes)), desc="scenes", unit="scene"):
+            packed = scenes.packed(k)
+            vols.extend(packed.frame_occ(t) for t in range(packed.num_frames))
+        elapsed = time.perf_counter() - start
+        print(f"synthetic {args.split}: {len(scenes)} scenes x {args.frames_per_scene} frames, "
+              f"generated in {elapsed:.1f} s ({elapsed / max(len(scenes), 1):.2f} s/scene)")
+        counts = class_counts(vols)
+        ds = _dataset(args, args.stride)
+        ds.scenes = scenes  # reuse the scenes just generated
+    else:
+        ds = _dataset(args, args.stride)
+        from t3fast.data.occ3d import read_labels
+
+        counts = class_counts(
+            read_labels(ds.label_path(scene, f["token"]))["semantics"]
+            for scene, frames in tqdm(ds.infos.items(), desc="scenes", unit="scene")
+            for f in frames
+        )
+    print(format_class_table(counts))
+    print(format_motion_summary(ds[i] for i in range(len(ds))))
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from t3fast.viz import save_sample_png
+
+    ds = _dataset(args, 1)
+    frames = [int(f) for f in args.frames.split(",")]
+    path = save_sample_png(ds[args.index], args.out, frames, args.scale, args.mask)
+    print(f"wrote {path}")
+    return 0

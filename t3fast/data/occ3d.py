@@ -1,0 +1,273 @@
+"""Occ3D-nuScenes reader: ``gts/<scene>/<token>/labels.npz`` plus an OccWorld-style info pickle.
+
+Expected layout::
+
+    <root>/gts/<scene_name>/<token>/labels.npz   # semantics, mask_lidar, mask_camera: uint8 [200, 200, 16]
+    <info.pkl>                                   # {"infos": {scene_name: [frame, ...]}, "metadata": {...}}
+
+Each scene's list is time ordered (2 Hz key frames). Keys read from a frame dict:
+
+* ``token`` (str): the sample token, the directory name under ``gts/<scene_name>/``;
+* ``ego2global_translation`` (3,), ``ego2global_rotation`` (4,) quaternion w, x, y, z;
+* ``gt_ego_fut_trajs`` (6, 2): per-step ego offsets (dx, dy) over the next 6 frames in
+  this frame's coordinates; ``gt_ego_fut_masks`` (6,) optional;
+* ``gt_boxes`` (N, 7): x, y, z, l, w, h, yaw in this frame's coordinates (yaw
+  counter-clockwise from +x, length along the heading); ``gt_names`` (N,) nuScenes
+  detection names; ``instance_tokens`` (N,) identities across frames (optional);
+  ``gt_agent_fut_trajs`` (N, 12) and ``gt_agent_fut_masks`` (N, 6) (used when
+  ``instance_tokens`` is absent);
+* ``lidar2ego_translation`` / ``lidar2ego_rotation`` (optional): when present, boxes and
+  trajectories are taken to be in the LiDAR frame (as in the nuScenes/UniAD info files)
+  and are moved into the ego frame.
+
+Labels are Occ3D's (see ``t3fast.data.classes``). Every problem with a file raises
+``Occ3DFormatError`` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch.utils.data import Dataset
+
+from t3fast.data import classes as C
+from t3fast.data.sample import PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
+
+LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
+
+#: nuScenes detection names (and a few raw category prefixes) -> Occ3D class ids
+NAME_TO_CLASS = {
+    "barrier": C.BARRIER,
+    "bicycle": C.BICYCLE,
+    "bus": C.BUS,
+    "car": C.CAR,
+    "construction_vehicle": C.CONSTRUCTION_VEHICLE,
+    "motorcycle": C.MOTORCYCLE,
+    "pedestrian": C.PEDESTRIAN,
+    "traffic_cone": C.TRAFFIC_CONE,
+    "trailer": C.TRAILER,
+    "truck": C.TRUCK,
+}
+
+
+class Occ3DFormatError(ValueError):
+    """A dataset file is missing or malformed; the message names the file and the problem."""
+
+
+def read_labels(path: str | Path) -> dict[str, np.ndarray]:
+    """Read and check one ``labels.npz``: uint8 ``semantics`` (0..17 or 255) and bool masks, ``[200, 200, 16]``."""
+    path = Path(path)
+    if not path.is_file():
+        raise Occ3DFormatError(f"{path}: file not found")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in LABEL_KEYS if k not in npz.files]
+            if missing:
+                raise Occ3DFormatError(f"{path}: missing array {missing[0]!r} (file has {sorted(npz.files)})")
+            arrays = {k: npz[k] for k in LABEL_KEYS}
+    except Occ3DFormatError:
+        raise
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+        raise Occ3DFormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
+    for key, arr in arrays.items():
+        if arr.shape != C.GRID_SHAPE:
+            raise Occ3DFormatError(f"{path}: {key!r} has shape {arr.shape}, expected {C.GRID_SHAPE}")
+        if not (np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool):
+            raise Occ3DFormatError(f"{path}: {key!r} has dtype {arr.dtype}, expected uint8")
+    sem = arrays["semantics"]
+    bad = np.unique(sem[(sem > C.FREE) & (sem != C.IGNORE) | (sem < 0)])
+    if bad.size:
+        raise Occ3DFormatError(f"{path}: 'semantics' has labels outside 0..17 and 255: {bad[:10].tolist()}")
+    for key in ("mask_lidar", "mask_camera"):
+        if arrays[key].dtype != bool and (arrays[key].max() > 1 or arrays[key].min() < 0):
+            raise Occ3DFormatError(f"{path}: {key!r} has values other than 0 and 1")
+    return {
+        "semantics": sem.astype(np.uint8),
+        "mask_lidar": arrays["mask_lidar"].astype(bool),
+        "mask_camera": arrays["mask_camera"].astype(bool),
+    }
+
+
+def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
+    """Read an info pickle and return ``{scene_name: [frame, ...]}`` after checking its structure."""
+    path = Path(path)
+    if not path.is_file():
+        raise Occ3DFormatError(f"{path}: file not found")
+    try:
+        with open(path, "rb") as f:
+            data = pickle.load(f)
+    except Exception as exc:  # any unpickling failure means the file is not an info pickle
+        raise Occ3DFormatError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(data, dict) or "infos" not in data:
+        raise Occ3DFormatError(f"{path}: expected a dict with key 'infos'")
+    infos = data["infos"]
+    if not isinstance(infos, dict):
+        raise Occ3DFormatError(f"{path}: 'infos' must map scene names to lists of frames, got {type(infos).__name__}")
+    for scene, frames in infos.items():
+        for k, frame in enumerate(frames):
+            for key in ("token", "ego2global_translation", "ego2global_rotation"):
+                if key not in frame:
+                    raise Occ3DFormatError(f"{path}: scene {scene!r} frame {k} has no {key!r}")
+    return infos
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation of a quaternion (w, x, y, z)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _transform(translation: Any, rotation: Any) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = quaternion_matrix(np.asarray(rotation))
+    m[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return m
+
+
+def _lidar2ego(frame: dict[str, Any]) -> np.ndarray:
+    if "lidar2ego_rotation" not in frame:
+        return np.eye(4)
+    return _transform(frame.get("lidar2ego_translation", np.zeros(3)), frame["lidar2ego_rotation"])
+
+
+def _boxes_to_ego(boxes: np.ndarray, l2e: np.ndarray) -> np.ndarray:
+    out = boxes.copy()
+    out[:, :3] = boxes[:, :3] @ l2e[:3, :3].T + l2e[:3, 3]
+    out[:, 6] = boxes[:, 6] + np.arctan2(l2e[1, 0], l2e[0, 0])
+    return out
+
+
+def _class_ids(names: Any) -> np.ndarray:
+    """Class ids of detection names; unknown names map to ``others``."""
+    out = [NAME_TO_CLASS.get(str(n), NAME_TO_CLASS.get(str(n).split(".")[-1], C.OTHERS)) for n in names]
+    return np.array(out, dtype=np.int64).reshape(-1)
+
+
+class Occ3DNuScenes(Dataset):
+    """11-frame ``DrivingSample``s from Occ3D-nuScenes (or anything in its layout).
+
+    Args:
+        data_root: directory holding ``gts/``.
+        info_path: the info pickle (OccWorld-style ``nuscenes_infos_<split>_temporal_*.pkl``).
+        stride: frames between the starts of consecutive windows of a scene.
+        flip: apply ``random_flip``.
+        scenes: optional subset of scene names.
+    """
+
+    def __init__(
+        self,
+        data_root: str | Path,
+        info_path: str | Path,
+        stride: int = 1,
+        flip: bool = False,
+        scenes: list[str] | None = None,
+    ):
+        self.root = Path(data_root)
+        self.info_path = Path(info_path)
+        infos = read_infos(self.info_path)
+        if scenes is not None:
+            unknown = sorted(set(scenes) - set(infos))
+            if unknown:
+                raise Occ3DFormatError(f"{self.info_path}: no scene named {unknown[0]!r}")
+            infos = {s: infos[s] for s in scenes}
+        self.infos = infos
+        self.flip = flip
+        self.index = [(scene, start) for scene, frames in infos.items() for start in window_starts(len(frames), stride)]
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def label_path(self, scene: str, token: str) -> Path:
+        return self.root / "gts" / scene / token / "labels.npz"
+
+    def __getitem__(self, index: int) -> DrivingSample:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        scene, start = self.index[index]
+        frames = self.infos[scene][start : start + WINDOW]
+        labels = [read_labels(self.label_path(scene, f["token"])) for f in frames]
+        poses = np.stack([_transform(f["ego2global_translation"], f["ego2global_rotation"]) for f in frames])
+        boxes, valid, classes = self._tracks(scene, frames)
+        sample = build_sample(
+            occ=np.stack([lab["semantics"] for lab in labels]),
+            mask_camera=np.stack([lab["mask_camera"] for lab in labels]),
+            ego_poses=poses,
+            boxes=boxes,
+            box_valid=valid,
+            box_labels=classes,
+            scene=scene,
+            start=start,
+            future_actions=self._future_actions(scene, start, frames[PRESENT]),
+        )
+        return random_flip(sample) if self.flip else sample
+
+    def _future_actions(self, scene: str, start: int, frame: dict[str, Any]) -> np.ndarray | None:
+        """The present frame's ``gt_ego_fut_trajs`` in ego coordinates (None: use the poses)."""
+        if "gt_ego_fut_trajs" not in frame:
+            return None
+        traj = np.asarray(frame["gt_ego_fut_trajs"], dtype=np.float64)
+        if traj.shape != (6, 2):
+            raise Occ3DFormatError(
+                f"{self.info_path}: scene {scene!r} frame {start + PRESENT}: 'gt_ego_fut_trajs' has shape "
+                f"{traj.shape}, expected (6, 2)"
+            )
+        masks = np.asarray(frame.get("gt_ego_fut_masks", np.ones(6)))
+        if not np.all(masks > 0):
+            return None
+        return traj @ _lidar2ego(frame)[:2, :2].T
+
+    def _tracks(self, scene: str, frames: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Boxes ``[11, A, 7]`` (each frame's own coordinates), validity ``[11, A]``, class ids ``[A]``."""
+        per_frame = []
+        for f in frames:
+            b = np.asarray(f.get("gt_boxes", np.zeros((0, 7))), dtype=np.float64).reshape(-1, 7)
+            names = f.get("gt_names", [])
+            if len(names) != len(b):
+                raise Occ3DFormatError(
+                    f"{self.info_path}: scene {scene!r} token {f['token']!r}: "
+                    f"{len(b)} gt_boxes but {len(names)} gt_names"
+                )
+            per_frame.append((_boxes_to_ego(b, _lidar2ego(f)), _class_ids(names)))
+        if all("instance_tokens" in f for f in frames):
+            ids = sorted({str(t) for f in frames for t in f["instance_tokens"]})
+            col = {t: i for i, t in enumerate(ids)}
+            boxes = np.zeros((WINDOW, len(ids), 7))
+            valid = np.zeros((WINDOW, len(ids)), dtype=bool)
+            classes = np.zeros(len(ids), dtype=np.int64)
+            for k, (f, (b, c)) in enumerate(zip(frames, per_frame)):
+                cols = [col[str(t)] for t in f["instance_tokens"]]
+                boxes[k, cols], valid[k, cols], classes[cols] = b, True, c
+            return boxes, valid, classes
+        # no identities: the present frame's agents, carried forward by their future trajectories
+        present = frames[PRESENT]
+        b, c = per_frame[PRESENT]
+        boxes = np.zeros((WINDOW, len(b), 7))
+        valid = np.zeros((WINDOW, len(b)), dtype=bool)
+        boxes[PRESENT], valid[PRESENT] = b, True
+        if "gt_agent_fut_trajs" in present and len(b):
+            rot = _lidar2ego(present)[:2, :2]
+            steps = np.asarray(present["gt_agent_fut_trajs"], dtype=np.float64).reshape(len(b), -1, 2) @ rot.T
+            masks = np.asarray(present.get("gt_agent_fut_masks", np.ones(steps.shape[:2]))) > 0
+            pos = b[:, None, :2] + np.cumsum(steps, axis=1)
+            poses = [_transform(f["ego2global_translation"], f["ego2global_rotation"]) for f in frames]
+            for k in range(min(steps.shape[1], WINDOW - PRESENT - 1)):
+                t = PRESENT + 1 + k
+                moved = b.copy()
+                moved[:, :2] = pos[:, k]
+                # boxes are stored in each frame's own coordinates: present -> frame t
+                to_t = np.linalg.inv(poses[t]) @ poses[PRESENT]
+                moved[:, :2] = moved[:, :2] @ to_t[:2, :2].T + to_t[:2, 3]
+                moved[:, 6] += np.arctan2(to_t[1, 0], to_t[0, 0])
+                boxes[t] = moved
+                valid[t] = np.cumprod(masks, axis=1)[:, k] > 0
+        return boxes, valid, c

@@ -1,0 +1,70 @@
+"""Cut ego-frame Occ3D label volumes out of the static raster and draw agent boxes.
+
+Frames are indexed ``[x, y, z]`` in the ego frame (x forward, y left, z up);
+see ``t3fast.data.classes`` for the grid geometry.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from t3fast.data import classes as C
+from t3fast.data.synthetic.layout import Warp
+from t3fast.data.synthetic.world import GROUND_TOP, GROUND_Z, RES, StaticMap, z_level
+
+_XC = C.voxel_centers(0)
+_YC = C.voxel_centers(1)
+_LEVELS = np.arange(C.GRID_SHAPE[2], dtype=np.uint8)
+
+
+def render_static(static: StaticMap, warp: Warp, pose: np.ndarray) -> np.ndarray:
+    """Static world seen from ego ``pose`` (x, y, yaw in world coordinates): uint8 ``[200, 200, 16]``.
+
+    Nearest-neighbour lookup of each voxel column centre in the 0.2 m raster.
+    """
+    px, py, yaw = pose
+    c, s = np.cos(yaw), np.sin(yaw)
+    wx = px + c * _XC[:, None] - s * _YC[None, :]
+    wy = py + s * _XC[:, None] + c * _YC[None, :]
+    u, v = warp.to_town(wx, wy)
+    i = np.floor((u - static.u0) / RES).astype(np.int64)
+    j = np.floor((v - static.v0) / RES).astype(np.int64)
+    h, w = static.ground.shape
+    if i.min() < 0 or j.min() < 0 or i.max() >= h or j.max() >= w:
+        raise ValueError("ego view leaves the rasterised town; enlarge the raster margin")
+    obj = static.obj[i, j]
+    occupied = (_LEVELS >= static.z0[i, j][..., None]) & (_LEVELS < static.z1[i, j][..., None])
+    vol = np.where(occupied, obj[..., None], np.uint8(C.FREE))
+    vol[..., GROUND_Z] = static.ground[i, j]
+    return vol
+
+
+def draw_boxes(vol: np.ndarray, boxes: np.ndarray, labels: np.ndarray) -> None:
+    """Draw ego-frame boxes ``[N, 7]`` (x, y, z, l, w, h, yaw) with class ids ``[N]`` into ``vol`` in place.
+
+    A voxel column is filled when its centre lies inside the footprint; the column
+    under the box centre is always filled so small agents never vanish.
+    """
+    lo, vs = C.GRID_LOWER, C.VOXEL_SIZE
+    nx, ny, _ = vol.shape
+    for (x, y, _z, length, width, height, yaw), label in zip(boxes, labels):
+        reach = 0.5 * np.hypot(length, width)
+        i0, i1 = int((x - reach - lo[0]) / vs), int((x + reach - lo[0]) / vs) + 1
+        j0, j1 = int((y - reach - lo[1]) / vs), int((y + reach - lo[1]) / vs) + 1
+        i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, nx), min(j1, ny)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        dx = _XC[i0:i1, None] - x
+        dy = _YC[None, j0:j1] - y
+        c, s = np.cos(yaw), np.sin(yaw)
+        inside = (np.abs(c * dx + s * dy) <= length / 2) & (np.abs(-s * dx + c * dy) <= width / 2)
+        ci, cj = int(np.floor((x - lo[0]) / vs)), int(np.floor((y - lo[1]) / vs))
+        if i0 <= ci < i1 and j0 <= cj < j1:
+            inside[ci - i0, cj - j0] = True
+        top = z_level(height)
+        vol[i0:i1, j0:j1, GROUND_Z + 1 : top][inside] = label
+
+
+def box_z(height: np.ndarray) -> np.ndarray:
+    """Centre height (m) of a box of ``height`` standing on the ground."""
+    return GROUND_TOP + height / 2

@@ -1,0 +1,117 @@
+"""Bird's-eye-view pictures of occupancy: what a person looks at to check the data.
+
+``bev_image`` colours each voxel column by its highest occupied voxel in the
+Occ3D palette (``t3fast.data.classes.PALETTE``). Pictures have the ego's
+forward direction (+x) pointing up and its left (+y) pointing left.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from t3fast.data import classes as C
+from t3fast.data.sample import PRESENT, DrivingSample, box_corners, boxes_to_frame
+
+EMPTY_COLOUR = (40, 40, 40)
+UNSEEN_DARKEN = 0.45
+EGO_COLOUR = (0, 255, 0)
+BOX_COLOUR = (255, 255, 255)
+PLAN_COLOUR = (0, 255, 0)
+
+
+def bev_colours(occ: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """RGB uint8 ``[X, Y, 3]`` (array layout, x down the rows) of a label volume ``[X, Y, Z]``.
+
+    Each column takes the colour of its highest voxel that is neither free nor
+    ignore; empty columns are dark grey. With ``mask`` (bool ``[X, Y, Z]``),
+    columns whose top voxel is not visible are darkened.
+    """
+    occupied = (occ != C.FREE) & (occ != C.IGNORE)
+    any_occ = occupied.any(axis=2)
+    top = occ.shape[2] - 1 - np.argmax(occupied[..., ::-1], axis=2)
+    label = np.take_along_axis(occ, top[..., None], axis=2)[..., 0]
+    rgb = np.where(any_occ[..., None], C.PALETTE[np.where(any_occ, label, 0)], np.array(EMPTY_COLOUR, np.uint8))
+    if mask is not None:
+        seen = np.take_along_axis(mask, top[..., None], axis=2)[..., 0]
+        rgb = np.where(seen[..., None] | ~any_occ[..., None], rgb, (rgb * UNSEEN_DARKEN).astype(np.uint8))
+    return rgb.astype(np.uint8)
+
+
+def _to_pixels(xy: np.ndarray, scale: int) -> np.ndarray:
+    """Ego-frame metres ``[..., 2]`` -> image (column, row) pixels, forward up, left left."""
+    col = (C.GRID_UPPER[1] - xy[..., 1]) / C.VOXEL_SIZE * scale
+    row = (C.GRID_UPPER[0] - xy[..., 0]) / C.VOXEL_SIZE * scale
+    return np.stack([col, row], -1)
+
+
+def bev_image(
+    occ: np.ndarray,
+    boxes: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    trajectory: np.ndarray | None = None,
+    scale: int = 2,
+) -> Image.Image:
+    """Top-down picture of one frame.
+
+    occ: label volume ``[200, 200, 16]``; boxes: ``[N, 7]`` in this frame's ego
+    coordinates (outlined); mask: optional visibility ``[200, 200, 16]``;
+    trajectory: optional ego positions ``[K, 2]`` (drawn as a polyline from the ego).
+    The ego (nuScenes footprint) is drawn at the origin.
+    """
+    rgb = bev_colours(np.asarray(occ), None if mask is None else np.asarray(mask))
+    # array [x, y] -> image [row, col] with x up and y left
+    img = np.ascontiguousarray(rgb[::-1, ::-1])
+    image = Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST)
+    draw = ImageDraw.Draw(image)
+    if boxes is not None and len(boxes):
+        for corners in _to_pixels(box_corners(np.asarray(boxes, dtype=np.float64)), scale):
+            draw.polygon([tuple(p) for p in corners], outline=BOX_COLOUR)
+    ego = np.array([[0, 0, 0, C.EGO_LENGTH, C.EGO_WIDTH, 1.5, 0.0]])
+    draw.polygon([tuple(p) for p in _to_pixels(box_corners(ego)[0], scale)], outline=EGO_COLOUR, fill=EGO_COLOUR)
+    if trajectory is not None and len(trajectory):
+        pts = _to_pixels(np.concatenate([np.zeros((1, 2)), np.asarray(trajectory)]), scale)
+        draw.line([tuple(p) for p in pts], fill=PLAN_COLOUR, width=max(scale, 1))
+    return image
+
+
+def sample_frame_boxes(sample: DrivingSample, t: int) -> np.ndarray:
+    """The valid boxes of frame ``t`` moved from the present frame into frame ``t``'s own ego frame."""
+    poses = sample.ego_poses.double().numpy()
+    to_t = np.linalg.inv(poses[t]) @ poses[PRESENT]
+    valid = sample.box_valid[t].numpy()
+    return boxes_to_frame(sample.boxes[t].double().numpy()[valid], to_t)
+
+
+def render_sample(sample: DrivingSample, frames: list[int] | None = None, scale: int = 1,
+                  show_mask: bool = False) -> Image.Image:
+    """A strip of BEV pictures of ``frames`` (default: every frame) of a sample, left to right.
+
+    Each frame shows its own boxes; the present frame also shows the future
+    trajectory (cumulated future actions).
+    """
+    frames = list(range(sample.occ.shape[0])) if frames is None else frames
+    tiles = []
+    for t in frames:
+        mask = sample.mask_camera[t].numpy() if show_mask else None
+        plan = sample.trajectory.numpy() if t == PRESENT else None
+        tiles.append(bev_image(sample.occ[t].numpy(), sample_frame_boxes(sample, t), mask, plan, scale))
+    gap = 4
+    width = sum(t.width for t in tiles) + gap * (len(tiles) - 1)
+    strip = Image.new("RGB", (width, tiles[0].height), (255, 255, 255))
+    x = 0
+    for tile in tiles:
+        strip.paste(tile, (x, 0))
+        x += tile.width + gap
+    return strip
+
+
+def save_sample_png(sample: DrivingSample, path: str | Path, frames: list[int] | None = None, scale: int = 1,
+                    show_mask: bool = False) -> Path:
+    """Render ``render_sample`` to a PNG file; returns its path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    render_sample(sample, frames, scale, show_mask).save(path, optimize=True)
+    return path

@@ -30,7 +30,7 @@ def _sources(pattern: str) -> list[str]:
 def _extension():
     with_cuda = _with_cuda()
     sources = _sources("csrc/*.cpp") + _sources("csrc/cpu/*.cpp")
-    cxx = ["-O3", "-std=c++17", "-fopenmp"]
+    cxx = ["-O3", "-fopenmp"]  # the C++ standard is the one torch asks for
     macros = []
     if with_cuda:
         sources += _sources("csrc/cuda/*.cpp") + _sources("csrc/cuda/*.cu")
@@ -39,7 +39,7 @@ def _extension():
             ("T3FAST_WITH_CUDA", "1"),
             ("T3FAST_CUDA_VERSION", str(major * 1000 + minor * 10)),
         ]
-        nvcc = ["-O3", "-std=c++17", "--expt-relaxed-constexpr"]
+        nvcc = ["-O3", "--expt-relaxed-constexpr"]
         return CUDAExtension(
             "t3fast._C",
             sources,

@@ -85,7 +85,8 @@ inline void scatter(T* plane, int64_t cols, int64_t n, const Tap<T>& tr, const T
 
 template <typename T>
 T3FAST_SIMD_CLONES void relu_inplace(T* x, int64_t n) {
-  for (int64_t i = 0; i < n; ++i) x[i] = x[i] > T(0) ? x[i] : T(0);
+  // written so that NaN stays NaN, as in torch.relu
+  for (int64_t i = 0; i < n; ++i) x[i] = x[i] < T(0) ? T(0) : x[i];
 }
 
 // ReLU backward: the gradient is zero where the layer's output was clamped.
@@ -404,8 +405,8 @@ at::Tensor triplane_decode_cpu(const at::Tensor& xy, const at::Tensor& xz, const
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
   const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOp);
-  T3FAST_CHECK(!argmax || p.classes() <= 256, kOp, "argmax=True needs at most 256 classes ",
-               "(uint8 labels), got ", p.classes());
+  T3FAST_CHECK(!argmax || (p.classes() >= 1 && p.classes() <= 256), kOp,
+               "argmax=True needs 1 to 256 classes (uint8 labels), got ", p.classes());
   auto shape = p.out_shape();
   at::Tensor out;
   if (argmax) {

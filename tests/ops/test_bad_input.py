@@ -61,7 +61,7 @@ def test_triplane_decode_rejects(overrides, pattern):
 def test_triplane_decode_argmax_needs_few_classes():
     args = decode_args(weights=[torch.randn(8, 10), torch.randn(300, 8)],
                        biases=[torch.randn(8), torch.randn(300)], argmax=True)
-    with pytest.raises(RuntimeError, match=r"argmax=True needs at most 256 classes .* got 300"):
+    with pytest.raises(RuntimeError, match=r"argmax=True needs 1 to 256 classes .* got 300"):
         call_decode(args)
 
 

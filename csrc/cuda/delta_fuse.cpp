@@ -1,0 +1,140 @@
+// CUDA glue of delta_fuse and its backward: argument checks (as on CPU), allocation, dtype
+// dispatch and launches of the kernels in delta_fuse_kernel.cu.
+#include <ATen/ATen.h>
+#include <ATen/Dispatch.h>
+#include <c10/core/DeviceGuard.h>
+#include <torch/library.h>
+
+#include <climits>
+#include <tuple>
+
+#include "checks.h"
+#include "cuda/kernels.h"
+#include "cuda/stream.h"
+
+namespace t3fast {
+namespace {
+
+constexpr const char* kOp = "delta_fuse";
+constexpr const char* kOpBwd = "delta_fuse_backward";
+
+template <typename T>
+T* ptr(const at::Tensor& t) {
+  return static_cast<T*>(t.data_ptr());
+}
+
+void check_launch(cudaError_t err, const char* op) {
+  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
+}
+
+void check_prev_weight(const at::Tensor& prev, const at::Tensor& weight, const char* op) {
+  check_dim(prev, op, "prev", 4, "[B, C_in, H, W]");
+  check_dim(weight, op, "weight", 2, "[C, C_in]");
+  check_float_dtype(prev, op, "prev");
+  check_same_dtype(weight, prev, op, "weight", "prev");
+  check_same_device(weight, prev, op, "weight", "prev");
+  check_size(weight, op, "weight", 1, prev.size(1), "C_in, as prev.shape[1]");
+}
+
+// The kernels count channels with 32-bit integers.
+void check_channels(const at::Tensor& weight, const char* op) {
+  T3FAST_CHECK(weight.size(0) <= INT_MAX && weight.size(1) <= INT_MAX, op,
+               "weight must have fewer than 2^31 channels on CUDA, got shape ", weight.sizes());
+}
+
+at::Tensor delta_fuse_cuda(const at::Tensor& delta, const at::Tensor& prev,
+                           const at::Tensor& weight, const c10::optional<at::Tensor>& bias) {
+  check_dim(delta, kOp, "delta", 4, "[B, C, H, W]");
+  check_float_dtype(delta, kOp, "delta");
+  check_prev_weight(prev, weight, kOp);
+  check_same_dtype(prev, delta, kOp, "prev", "delta");
+  check_same_device(prev, delta, kOp, "prev", "delta");
+  check_size(prev, kOp, "prev", 0, delta.size(0), "batch, as delta");
+  check_size(prev, kOp, "prev", 2, delta.size(2), "H, as delta");
+  check_size(prev, kOp, "prev", 3, delta.size(3), "W, as delta");
+  check_size(weight, kOp, "weight", 0, delta.size(1), "C, as delta.shape[1]");
+  if (bias.has_value()) {
+    check_dim(*bias, kOp, "bias", 1, "[C]");
+    check_same_dtype(*bias, delta, kOp, "bias", "delta");
+    check_same_device(*bias, delta, kOp, "bias", "delta");
+    check_size(*bias, kOp, "bias", 0, delta.size(1), "C, as delta.shape[1]");
+  }
+  check_channels(weight, kOp);
+  const c10::DeviceGuard device_guard(delta.device());
+  const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
+  const int64_t HW = delta.size(2) * delta.size(3);
+  const at::Tensor d = delta.detach().contiguous();
+  const at::Tensor pv = prev.detach().contiguous();
+  const at::Tensor w = weight.detach().contiguous();
+  const at::Tensor b = bias.has_value() ? bias->detach().contiguous() : at::Tensor();
+  at::Tensor out = at::empty(d.sizes(), d.options());
+  if (out.numel() == 0) return out;
+  const cudaStream_t stream = current_stream(d.get_device());
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, d.scalar_type(), "delta_fuse_cuda",
+                                  [&] {
+    using T = cuda_type_t<scalar_t>;
+    err = cuda::delta_fuse_forward<T>(ptr<const T>(d), ptr<const T>(pv), ptr<const T>(w),
+                                      b.defined() ? ptr<const T>(b) : nullptr, B,
+                                      static_cast<int>(C), static_cast<int>(Cin), HW, ptr<T>(out),
+                                      stream);
+  });
+  check_launch(err, kOp);
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cuda(
+    const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
+  check_prev_weight(prev, weight, kOpBwd);
+  check_dim(grad_out, kOpBwd, "grad_out", 4, "[B, C, H, W]");
+  check_same_dtype(grad_out, prev, kOpBwd, "grad_out", "prev");
+  check_same_device(grad_out, prev, kOpBwd, "grad_out", "prev");
+  check_size(grad_out, kOpBwd, "grad_out", 0, prev.size(0), "batch, as prev");
+  check_size(grad_out, kOpBwd, "grad_out", 1, weight.size(0), "C, as weight.shape[0]");
+  check_size(grad_out, kOpBwd, "grad_out", 2, prev.size(2), "H, as prev");
+  check_size(grad_out, kOpBwd, "grad_out", 3, prev.size(3), "W, as prev");
+  check_channels(weight, kOpBwd);
+  const c10::DeviceGuard device_guard(prev.device());
+  const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
+  const int64_t HW = prev.size(2) * prev.size(3);
+  const bool dbl = prev.scalar_type() == at::kDouble;
+  const at::Tensor g = grad_out.detach().contiguous();
+  const at::Tensor pv = prev.detach().contiguous();
+  const at::Tensor w = weight.detach().contiguous();
+  at::Tensor grad_prev = at::empty(pv.sizes(), pv.options());
+  const auto acc_opts = pv.options().dtype(dbl ? at::kDouble : at::kFloat);
+  at::Tensor gw = at::zeros({C, Cin}, acc_opts);
+  at::Tensor gb = at::zeros({C}, acc_opts);
+  if (B * HW > 0) {
+    int available = 0;
+    check_launch(cudaDeviceGetAttribute(&available, cudaDevAttrMaxSharedMemoryPerBlockOptin,
+                                        pv.get_device()),
+                 kOpBwd);
+    const size_t need = cuda::delta_fuse_backward_min_shared_bytes(
+        static_cast<int>(C), static_cast<int>(Cin), dbl);
+    T3FAST_CHECK(need <= static_cast<size_t>(available), kOpBwd, "C + C_in = ", C + Cin,
+                 " channels need ", need, " bytes of shared memory per block in ",
+                 pv.scalar_type(), " but the device offers ", available);
+    const cudaStream_t stream = current_stream(pv.get_device());
+    cudaError_t err = cudaSuccess;
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, pv.scalar_type(),
+                                    "delta_fuse_backward_cuda", [&] {
+      using T = cuda_type_t<scalar_t>;
+      using A = cuda::acc_t<T>;
+      err = cuda::delta_fuse_backward<T>(ptr<const T>(g), ptr<const T>(pv), ptr<const T>(w), B,
+                                         static_cast<int>(C), static_cast<int>(Cin), HW,
+                                         ptr<T>(grad_prev), ptr<A>(gw), ptr<A>(gb), stream);
+    });
+    check_launch(err, kOpBwd);
+  }
+  return {grad_prev, gw.to(prev.scalar_type()), gb.to(prev.scalar_type())};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(t3fast, CUDA, m) {
+  m.impl("delta_fuse", &delta_fuse_cuda);
+  m.impl("delta_fuse_backward", &delta_fuse_backward_cuda);
+}
+
+}  // namespace t3fast

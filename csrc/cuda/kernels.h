@@ -1,0 +1,176 @@
+// Launchers of the pure-CUDA kernels of t3fast (csrc/cuda/*_kernel.cu).
+//
+// No torch header on purpose: the kernels take raw pointers to contiguous tensors, sizes and
+// a stream, and return the CUDA error of the launch (cudaSuccess on empty input, where
+// nothing is launched). The torch glue (csrc/cuda/<op>.cpp) validates, allocates and turns
+// errors into exceptions. Each launcher is explicitly instantiated for float, double, __half
+// and __nv_bfloat16; arithmetic runs in acc_t<T> (double for double, float otherwise).
+#pragma once
+
+#include <cuda_bf16.h>
+#include <cuda_fp16.h>
+#include <cuda_runtime.h>
+
+#include <cstdint>
+
+namespace t3fast {
+namespace cuda {
+
+template <typename T>
+struct AccType {
+  using type = float;
+};
+template <>
+struct AccType<double> {
+  using type = double;
+};
+template <typename T>
+using acc_t = typename AccType<T>::type;
+
+#ifdef __CUDACC__
+// Storage <-> accumulation conversions for the kernel files. Explicit intrinsics because torch
+// compiles CUDA extensions with __CUDA_NO_HALF_CONVERSIONS__ and
+// __CUDA_NO_BFLOAT16_CONVERSIONS__.
+__device__ __forceinline__ float to_acc(float v) { return v; }
+__device__ __forceinline__ double to_acc(double v) { return v; }
+__device__ __forceinline__ float to_acc(__half v) { return __half2float(v); }
+__device__ __forceinline__ float to_acc(__nv_bfloat16 v) { return __bfloat162float(v); }
+
+template <typename T>
+__device__ __forceinline__ T from_acc(acc_t<T> v) {
+  return v;
+}
+template <>
+__device__ __forceinline__ __half from_acc<__half>(float v) {
+  return __float2half_rn(v);
+}
+template <>
+__device__ __forceinline__ __nv_bfloat16 from_acc<__nv_bfloat16>(float v) {
+  return __float2bfloat16_rn(v);
+}
+#endif  // __CUDACC__
+
+// ------------------------------------------------------------------ triplane_decode
+
+// Limits of the fused forward kernel: layers of the MLP and any layer width (including the
+// input width C + 6 * pe_freqs and the number of classes).
+constexpr int kTriplaneMaxLayers = 32;
+constexpr int kTriplaneMaxWidth = 512;
+
+// The three planes (contiguous): xy [batch, channels, sx, sy], xz [batch, channels, sx, sz],
+// yz [batch, channels, sy, sz].
+template <typename T>
+struct Triplane {
+  const T* xy;
+  const T* xz;
+  const T* yz;
+  int64_t batch;
+  int channels;
+  int sx, sy, sz;
+};
+
+// The query points: points [batch, num_points, 3] (contiguous) or, when points is null, the
+// voxel centres of a gx x gy x gz grid (num_points = gx * gy * gz, z fastest). Point g of the
+// flattened [batch * num_points] range belongs to batch g / num_points.
+template <typename T>
+struct Query {
+  const T* points;
+  int64_t num_points;
+  int gx, gy, gz;
+};
+
+// The MLP: weight[i] [width[i + 1], width[i]] and bias[i] [width[i + 1]], contiguous.
+template <typename T>
+struct Mlp {
+  const T* weight[kTriplaneMaxLayers];
+  const T* bias[kTriplaneMaxLayers];
+  int width[kTriplaneMaxLayers + 1];
+  int num_layers;
+};
+
+// Shared memory per block that the fused forward needs for these layer widths with its
+// smallest point tile (0 if a width exceeds kTriplaneMaxWidth). The launcher picks the
+// largest point tile that fits the device, so this is what a device must at least offer.
+size_t triplane_decode_min_shared_bytes(const int* widths, int num_layers, bool double_precision);
+
+// Fused forward over batch * num_points points. Writes logits [batch * num_points, K]
+// (when logits is not null) or the first-maximum class labels [batch * num_points] (when
+// labels is not null; K <= 256).
+template <typename T>
+cudaError_t triplane_decode_forward(const Triplane<T>& planes, const Query<T>& query,
+                                    int pe_freqs, const Mlp<T>& mlp, T* logits, uint8_t* labels,
+                                    cudaStream_t stream);
+
+// Decoder input features [count, channels + 6 * pe_freqs] of the points start ..
+// start + count - 1 of the flattened query range.
+template <typename T>
+cudaError_t triplane_features(const Triplane<T>& planes, const Query<T>& query, int pe_freqs,
+                              int64_t start, int64_t count, acc_t<T>* features,
+                              cudaStream_t stream);
+
+// Adds the bilinear transpose of the feature gradient (row r of grad_features holds the
+// gradient of the summed plane sample of point start + r in its first `channels` entries;
+// rows are ld apart) into the zero-initialised plane gradients (shapes of the planes).
+// Uses atomics: the summation order, hence the last bits, may vary between runs.
+template <typename T>
+cudaError_t triplane_scatter_grad(const Triplane<T>& planes, const Query<T>& query,
+                                  int64_t start, int64_t count, const acc_t<T>* grad_features,
+                                  int64_t ld, acc_t<T>* grad_xy, acc_t<T>* grad_xz,
+                                  acc_t<T>* grad_yz, cudaStream_t stream);
+
+// ------------------------------------------------------------------ axis_pool
+
+// How axis_pool_forward splits the work: a block reduces x_chunk consecutive x-slabs of one
+// (b, c) pair, in tiles of y_tile rows; with num_chunks > 1 the partial yz sums of the chunks
+// go to a workspace of workspace_elems acc_t<T> values and a second pass adds them in a
+// fixed order (deterministic, no atomics).
+struct AxisPoolPlan {
+  int64_t x_chunk;
+  int64_t num_chunks;
+  int64_t y_tile;
+  int64_t workspace_elems;
+  size_t shared_bytes;
+};
+
+// The plan for this shape on a device with num_sms multiprocessors.
+AxisPoolPlan axis_pool_plan(int64_t batch, int64_t channels, int64_t x, int64_t y, int64_t z,
+                            int num_sms, bool double_precision);
+
+// volume [batch, channels, x, y, z] -> xy [.., x, y] (mean over z), xz [.., x, z] (over y),
+// yz [.., y, z] (over x), reading the volume once. workspace: plan.workspace_elems values
+// (may be null when that is 0).
+template <typename T>
+cudaError_t axis_pool_forward(const T* volume, int64_t batch, int64_t channels, int64_t x,
+                              int64_t y, int64_t z, const AxisPoolPlan& plan, T* xy, T* xz,
+                              T* yz, acc_t<T>* workspace, cudaStream_t stream);
+
+// grad_volume[b, c, i, j, k] = grad_xy[b, c, i, j] / z + grad_xz[b, c, i, k] / y
+//                              + grad_yz[b, c, j, k] / x.
+template <typename T>
+cudaError_t axis_pool_backward(const T* grad_xy, const T* grad_xz, const T* grad_yz,
+                               int64_t batch, int64_t channels, int64_t x, int64_t y, int64_t z,
+                               T* grad_volume, cudaStream_t stream);
+
+// ------------------------------------------------------------------ delta_fuse
+
+// out [batch, c_out, pixels] = delta + weight [c_out, c_in] @ prev [batch, c_in, pixels]
+// (+ bias [c_out] when not null).
+template <typename T>
+cudaError_t delta_fuse_forward(const T* delta, const T* prev, const T* weight, const T* bias,
+                               int64_t batch, int c_out, int c_in, int64_t pixels, T* out,
+                               cudaStream_t stream);
+
+// Shared memory per block of delta_fuse_backward with its smallest pixel tile.
+size_t delta_fuse_backward_min_shared_bytes(int c_out, int c_in, bool double_precision);
+
+// grad_prev [batch, c_in, pixels] = weight^T @ grad_out, and adds into the zero-initialised
+// accumulators grad_weight [c_out, c_in] += sum over batch and pixels of grad_out prev^T,
+// grad_bias [c_out] += sum of grad_out. Reads grad_out and prev once. The weight and bias
+// gradients use atomics: their last bits may vary between runs.
+template <typename T>
+cudaError_t delta_fuse_backward(const T* grad_out, const T* prev, const T* weight,
+                                int64_t batch, int c_out, int c_in, int64_t pixels, T* grad_prev,
+                                acc_t<T>* grad_weight, acc_t<T>* grad_bias, cudaStream_t stream);
+
+}  // namespace cuda
+}  // namespace t3fast

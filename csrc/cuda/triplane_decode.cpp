@@ -1,0 +1,265 @@
+// CUDA glue of triplane_decode and its backward: argument checks (as on CPU), allocation,
+// dtype dispatch and launches of the kernels in triplane_decode_kernel.cu.
+//
+// Forward: one fused kernel (see triplane_decode_kernel.cu).
+// Backward: the query points are processed in chunks of kBackwardChunk. For a chunk, a kernel
+// writes the features [P, C + 6F] (fp32, double for double), the layers are recomputed with
+// cuBLAS GEMMs keeping each layer's input, and the gradient is propagated back through them
+// (grad W_l += G^T A_l, grad b_l += sum_p G, G <- (G W_l) * (A_l > 0)); a second kernel scatters
+// the feature gradient of the C plane channels into the three planes with atomics. The
+// [all points, hidden] tensors are never materialised, and all accumulation is in fp32 (or
+// double) before the final cast to the input dtype.
+#include <ATen/ATen.h>
+#include <ATen/Dispatch.h>
+#include <c10/core/DeviceGuard.h>
+#include <torch/library.h>
+
+#include <algorithm>
+#include <climits>
+#include <tuple>
+#include <vector>
+
+#include "checks.h"
+#include "cuda/kernels.h"
+#include "cuda/stream.h"
+
+namespace t3fast {
+namespace {
+
+constexpr const char* kOp = "triplane_decode";
+constexpr const char* kOpBwd = "triplane_decode_backward";
+// Points per backward chunk: the recomputed activations take 64 MiB per 256-wide layer.
+constexpr int64_t kBackwardChunk = 65536;
+
+template <typename T>
+T* ptr(const at::Tensor& t) {
+  return static_cast<T*>(t.data_ptr());
+}
+
+void check_launch(cudaError_t err, const char* op) {
+  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
+}
+
+// Validated arguments, contiguous, on the device of xy.
+struct Problem {
+  at::Tensor xy, xz, yz;
+  at::Tensor points;  // [B, N, 3], undefined in grid mode
+  std::vector<at::Tensor> weights, biases;
+  std::vector<int64_t> widths;  // [in_0, out_0, ..., out_{L-1}]
+  int64_t grid[3] = {0, 0, 0};
+  int64_t per_batch = 0;  // query points per batch element
+  int64_t pe_freqs = 0;
+
+  int64_t layers() const { return static_cast<int64_t>(weights.size()); }
+  int64_t classes() const { return widths.back(); }
+  std::vector<int64_t> out_shape() const {
+    if (!points.defined()) return {xy.size(0), grid[0], grid[1], grid[2]};
+    return {xy.size(0), per_batch};
+  }
+};
+
+Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
+                     at::TensorList weights, at::TensorList biases,
+                     const c10::optional<at::Tensor>& points, c10::OptionalIntArrayRef grid,
+                     int64_t pe_freqs, const char* op) {
+  check_planes(xy, xz, yz, op);
+  check_query(xy, points, grid, pe_freqs, op);
+  Problem p;
+  p.pe_freqs = pe_freqs;
+  p.widths = check_mlp(weights, biases, xy, xy.size(1) + 6 * pe_freqs, op);
+  // The kernels index plane rows/columns, channels and grid cells with 32-bit integers.
+  for (const auto* t : {&xy, &xz, &yz}) {
+    T3FAST_CHECK(t->size(1) <= INT_MAX && t->size(2) <= INT_MAX && t->size(3) <= INT_MAX, op,
+                 "plane channels and sizes must be < 2^31 on CUDA, got xy ", xy.sizes(), ", xz ",
+                 xz.sizes(), ", yz ", yz.sizes());
+  }
+  p.xy = xy.detach().contiguous();
+  p.xz = xz.detach().contiguous();
+  p.yz = yz.detach().contiguous();
+  for (size_t i = 0; i < weights.size(); ++i) {
+    p.weights.push_back(weights[i].detach().contiguous());
+    p.biases.push_back(biases[i].detach().contiguous());
+  }
+  if (points.has_value()) {
+    p.points = points->detach().contiguous();
+    p.per_batch = p.points.size(1);
+  } else {
+    for (int d = 0; d < 3; ++d) {
+      T3FAST_CHECK((*grid)[d] <= INT_MAX, op, "grid sizes must be < 2^31 on CUDA, got ", *grid);
+      p.grid[d] = (*grid)[d];
+    }
+    p.per_batch = p.grid[0] * p.grid[1] * p.grid[2];
+  }
+  return p;
+}
+
+template <typename T>
+cuda::Triplane<T> triplane_of(const Problem& p) {
+  cuda::Triplane<T> t;
+  t.xy = ptr<const T>(p.xy);
+  t.xz = ptr<const T>(p.xz);
+  t.yz = ptr<const T>(p.yz);
+  t.batch = p.xy.size(0);
+  t.channels = static_cast<int>(p.xy.size(1));
+  t.sx = static_cast<int>(p.xy.size(2));
+  t.sy = static_cast<int>(p.xy.size(3));
+  t.sz = static_cast<int>(p.xz.size(3));
+  return t;
+}
+
+template <typename T>
+cuda::Query<T> query_of(const Problem& p) {
+  cuda::Query<T> q;
+  q.points = p.points.defined() ? ptr<const T>(p.points) : nullptr;
+  q.num_points = p.per_batch;
+  q.gx = static_cast<int>(p.grid[0]);
+  q.gy = static_cast<int>(p.grid[1]);
+  q.gz = static_cast<int>(p.grid[2]);
+  return q;
+}
+
+// Limits of the fused forward kernel, with errors that name them.
+void check_fused_limits(const Problem& p, const char* op) {
+  T3FAST_CHECK(p.layers() <= cuda::kTriplaneMaxLayers, op, "the CUDA kernel supports at most ",
+               cuda::kTriplaneMaxLayers, " layers, got ", p.layers());
+  const int64_t widest = *std::max_element(p.widths.begin(), p.widths.end());
+  T3FAST_CHECK(widest <= cuda::kTriplaneMaxWidth, op,
+               "the CUDA kernel supports widths (C + 6 * pe_freqs and every layer's out "
+               "features) up to ",
+               cuda::kTriplaneMaxWidth, ", got widths ", p.widths);
+  std::vector<int> widths(p.widths.begin(), p.widths.end());
+  const bool dbl = p.xy.scalar_type() == at::kDouble;
+  const size_t need =
+      cuda::triplane_decode_min_shared_bytes(widths.data(), static_cast<int>(p.layers()), dbl);
+  int available = 0;
+  check_launch(cudaDeviceGetAttribute(&available, cudaDevAttrMaxSharedMemoryPerBlockOptin,
+                                      p.xy.get_device()),
+               op);
+  T3FAST_CHECK(need <= static_cast<size_t>(available), op, "layer widths ", p.widths, " need ",
+               need, " bytes of shared memory per block in ", p.xy.scalar_type(),
+               " but the device offers ", available, "; use narrower layers",
+               dbl ? " or float32" : "");
+}
+
+at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
+                                at::TensorList weights, at::TensorList biases,
+                                const c10::optional<at::Tensor>& points,
+                                c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
+  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOp);
+  T3FAST_CHECK(!argmax || p.classes() <= 256, kOp, "argmax=True needs at most 256 classes ",
+               "(uint8 labels), got ", p.classes());
+  const c10::DeviceGuard device_guard(xy.device());
+  auto shape = p.out_shape();
+  at::Tensor out;
+  if (argmax) {
+    out = at::empty(shape, xy.options().dtype(at::kByte));
+  } else {
+    shape.push_back(p.classes());
+    out = at::empty(shape, xy.options());
+  }
+  if (out.numel() == 0) return out;
+  check_fused_limits(p, kOp);
+  const cudaStream_t stream = current_stream(xy.get_device());
+  cudaError_t err = cudaSuccess;
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, xy.scalar_type(),
+                                  "triplane_decode_cuda", [&] {
+    using T = cuda_type_t<scalar_t>;
+    cuda::Mlp<T> mlp;
+    mlp.num_layers = static_cast<int>(p.layers());
+    for (int64_t l = 0; l < p.layers(); ++l) {
+      mlp.weight[l] = ptr<const T>(p.weights[l]);
+      mlp.bias[l] = ptr<const T>(p.biases[l]);
+    }
+    for (size_t i = 0; i < p.widths.size(); ++i) mlp.width[i] = static_cast<int>(p.widths[i]);
+    err = cuda::triplane_decode_forward<T>(triplane_of<T>(p), query_of<T>(p),
+                                           static_cast<int>(pe_freqs), mlp,
+                                           argmax ? nullptr : ptr<T>(out),
+                                           argmax ? ptr<uint8_t>(out) : nullptr, stream);
+  });
+  check_launch(err, kOp);
+  return out;
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, std::vector<at::Tensor>, std::vector<at::Tensor>>
+triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
+                              const at::Tensor& xz, const at::Tensor& yz, at::TensorList weights,
+                              at::TensorList biases, const c10::optional<at::Tensor>& points,
+                              c10::OptionalIntArrayRef grid, int64_t pe_freqs) {
+  // The GEMMs below are ATen ops; they must not record autograd history.
+  at::AutoDispatchBelowADInplaceOrView guard;
+  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOpBwd);
+  auto shape = p.out_shape();
+  shape.push_back(p.classes());
+  T3FAST_CHECK(grad_out.sizes() == at::IntArrayRef(shape), kOpBwd, "grad_out must have shape ",
+               at::IntArrayRef(shape), ", got ", grad_out.sizes());
+  check_same_dtype(grad_out, xy, kOpBwd, "grad_out", "xy");
+  check_same_device(grad_out, xy, kOpBwd, "grad_out", "xy");
+  const c10::DeviceGuard device_guard(xy.device());
+
+  const at::ScalarType acc = xy.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  const auto opts = xy.options().dtype(acc);
+  const int64_t L = p.layers();
+  const int64_t in0 = p.widths[0];
+  const int64_t total = xy.size(0) * p.per_batch;
+  const at::Tensor go = grad_out.detach().contiguous().view({total, p.classes()});
+  std::vector<at::Tensor> w, b, gw, gb;
+  for (int64_t l = 0; l < L; ++l) {
+    w.push_back(p.weights[l].to(acc));
+    b.push_back(p.biases[l].to(acc));
+    gw.push_back(at::zeros_like(w[l]));
+    gb.push_back(at::zeros_like(b[l]));
+  }
+  at::Tensor gxy = at::zeros(xy.sizes(), opts);
+  at::Tensor gxz = at::zeros(xz.sizes(), opts);
+  at::Tensor gyz = at::zeros(yz.sizes(), opts);
+
+  const cudaStream_t stream = current_stream(xy.get_device());
+  at::Tensor features = at::empty({std::min(total, kBackwardChunk), in0}, opts);
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, xy.scalar_type(),
+                                  "triplane_decode_backward_cuda", [&] {
+    using T = cuda_type_t<scalar_t>;
+    using A = cuda::acc_t<T>;
+    const cuda::Triplane<T> planes = triplane_of<T>(p);
+    const cuda::Query<T> query = query_of<T>(p);
+    for (int64_t start = 0; start < total; start += kBackwardChunk) {
+      const int64_t count = std::min(kBackwardChunk, total - start);
+      std::vector<at::Tensor> acts{features.narrow(0, 0, count)};  // input of each layer
+      check_launch(cuda::triplane_features<T>(planes, query, static_cast<int>(p.pe_freqs), start,
+                                              count, ptr<A>(acts[0]), stream),
+                   kOpBwd);
+      for (int64_t l = 0; l + 1 < L; ++l) {
+        acts.push_back(at::addmm(b[l], acts[l], w[l].t()).relu_());
+      }
+      at::Tensor g = go.narrow(0, start, count).to(acc);
+      for (int64_t l = L - 1; l >= 0; --l) {
+        gw[l].addmm_(g.t(), acts[l]);
+        gb[l].add_(g.sum(0));
+        g = at::mm(g, w[l]);
+        // ReLU backward: zero where the layer's output was not positive (NaN included).
+        if (l > 0) g.masked_fill_(acts[l].gt(0).logical_not(), 0);
+      }
+      // g = [count, in0] feature gradient; its first C columns belong to the planes.
+      check_launch(cuda::triplane_scatter_grad<T>(planes, query, start, count, ptr<const A>(g),
+                                                  in0, ptr<A>(gxy), ptr<A>(gxz), ptr<A>(gyz),
+                                                  stream),
+                   kOpBwd);
+    }
+  });
+
+  const auto dtype = xy.scalar_type();
+  std::vector<at::Tensor> grad_w, grad_b;
+  for (int64_t l = 0; l < L; ++l) {
+    grad_w.push_back(gw[l].to(dtype));
+    grad_b.push_back(gb[l].to(dtype));
+  }
+  return {gxy.to(dtype), gxz.to(dtype), gyz.to(dtype), grad_w, grad_b};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(t3fast, CUDA, m) {
+  m.impl("triplane_decode", &triplane_decode_cuda);
+  m.impl("triplane_decode_backward", &triplane_decode_backward_cuda);
+}
+
+}  // namespace t3fast

@@ -1,0 +1,520 @@
+// triplane_decode on CUDA: the fused forward kernel and the two point-wise kernels of the
+// backward pass (feature recomputation and the scatter of feature gradients to the planes).
+//
+// Forward design (after tiny-cuda-nn's fully fused MLP, SIMT version)
+// -------------------------------------------------------------------
+// A block of 256 threads owns a tile of P consecutive query points (P = 128, 64 or 32) and
+// takes them from coordinates to logits without touching global memory in between:
+//   1. the points' coordinates (read, or computed from the voxel index in grid mode) and
+//      batch index go to shared memory;
+//   2. the features (bilinear samples of the three planes, summed, then the positional
+//      encoding) are computed into the activation buffer `act` [feature][P + 1] in shared
+//      memory (point index contiguous);
+//   3. every layer is a small GEMM out[P, n_out] = act[P, n_in] W^T + b: each thread keeps a
+//      register tile of TP points x 8 outputs in fp32 (double for double), the weights
+//      stream through shared memory in chunks of 8 input features (`wsm` [n_out][8 + 1],
+//      converted to the accumulation type on the way), and the activations are read from
+//      shared memory. Once the whole layer is in registers (after a barrier) the threads
+//      overwrite `act` in place, so one buffer of P x max-width values is enough;
+//   4. the last layer's values are written as logits (coalesced, one row per point) or
+//      reduced to the first-maximum class per point (uint8 labels; no logits anywhere).
+// The block holds 256 x 64 = 16384 accumulators per layer at most, hence P = 128 points for
+// widths up to 128, 64 up to 256, 32 up to 512 (kTriplaneMaxWidth); the launcher takes the
+// largest P that covers the widest layer and whose shared memory fits the device. Narrow
+// layers (e.g. the class layer) use a thinner register tile (TP = 4, 2, 1 points per thread)
+// so that most threads still have work. In the inner loop a warp reads one broadcast or
+// consecutive activations and consecutive rows of `wsm` (odd row length): no bank conflicts,
+// and all offsets are compile-time constants from two base registers. Shared memory per
+// block is ((P + 1) x padded widest width + rows x 9 + 3 P) x 4 + 8 P bytes, e.g. about
+// 72 KB for hidden width 128 (P = 128) or 75 KB for 256 (P = 64): two blocks per SM on A100
+// and H100 (the kernel is built for at most 128 registers per thread for that reason). The
+// weights are re-read from L2 once per tile and layer. Tensor cores are not used.
+//
+// Backward: see triplane_decode.cpp (chunked recomputation with cuBLAS GEMMs); the kernels
+// here compute a chunk's features and scatter the feature gradient into the planes.
+#include "cuda/kernels.h"
+
+#include <climits>
+
+namespace t3fast {
+namespace cuda {
+namespace {
+
+constexpr int kThreads = 256;  // threads per block, all kernels of this file
+constexpr int kTileOut = 8;    // outputs per thread in a layer's register tile
+constexpr int kMaxTileRows = 8;  // points per thread at the widest layout
+constexpr int kMaxGridBlocks = 1 << 16;  // cap of grid-stride launches
+
+// Input features per staged weight chunk. 8 keeps the chunk small enough (9 KB at 256
+// outputs) for two blocks of the 256-wide configuration per SM on A100 (164 KB per SM).
+constexpr int kChunk = 8;
+
+__host__ __device__ constexpr int round_up(int v, int m) { return (v + m - 1) / m * m; }
+
+// Row length of the activation buffer act [features][P + 1]: the point index is contiguous,
+// and the odd row length keeps the column reads of the epilogue free of bank conflicts.
+template <int P>
+__host__ __device__ constexpr int act_row() {
+  return P + 1;
+}
+
+// Outputs one pass of a layer covers with a tile of P points and tp points per thread.
+__host__ __device__ constexpr int outputs_covered(int P, int tp) {
+  return kThreads * tp / P * kTileOut;
+}
+
+// Thinnest register tile (points per thread) whose pass covers `out` outputs.
+__host__ __device__ inline int rows_per_thread(int P, int out) {
+  for (int tp = 1; tp < kMaxTileRows; tp *= 2) {
+    if (outputs_covered(P, tp) >= out) return tp;
+  }
+  return kMaxTileRows;
+}
+
+// Rows of the staged weight chunk: the widest pass over the layers' outputs, since threads
+// read (and drop) rows up to the end of their pass.
+__host__ __device__ inline int mlp_weight_rows(int P, const int* widths, int num_layers) {
+  int rows = 0;
+  for (int i = 1; i <= num_layers; ++i) {
+    const int covered = outputs_covered(P, rows_per_thread(P, widths[i]));
+    rows = covered > rows ? covered : rows;
+  }
+  return rows;
+}
+
+// Clamp to [0, hi]; fmax returns 0 for a NaN coordinate, which keeps the indices in range.
+__device__ __forceinline__ float clamp_border(float v, float hi) {
+  return fminf(fmaxf(v, 0.f), hi);
+}
+__device__ __forceinline__ double clamp_border(double v, double hi) {
+  return fmin(fmax(v, 0.0), hi);
+}
+__device__ __forceinline__ float sin_acc(float v) { return sinf(v); }
+__device__ __forceinline__ double sin_acc(double v) { return sin(v); }
+__device__ __forceinline__ float cos_acc(float v) { return cosf(v); }
+__device__ __forceinline__ double cos_acc(double v) { return cos(v); }
+
+// Voxel-centre coordinate of cell i of n, (2 i + 1) / n - 1, with the reference's rounding.
+template <typename A>
+__device__ __forceinline__ A voxel_centre(int64_t i, int n) {
+  return static_cast<A>(2 * i + 1) / static_cast<A>(n) - A(1);
+}
+
+// Coordinates and batch index of point g of the flattened [batch * num_points] query range.
+template <typename T, typename A>
+__device__ __forceinline__ int64_t query_point(const Query<T>& q, int64_t g, A& x, A& y, A& z) {
+  const int64_t b = g / q.num_points;
+  if (q.points != nullptr) {
+    const T* p = q.points + 3 * g;
+    x = to_acc(p[0]);
+    y = to_acc(p[1]);
+    z = to_acc(p[2]);
+  } else {
+    const int64_t n = g - b * q.num_points;
+    const int64_t plane = static_cast<int64_t>(q.gy) * q.gz;
+    const int64_t i = n / plane;
+    const int64_t r = n - i * plane;
+    const int64_t j = r / q.gz;
+    x = voxel_centre<A>(i, q.gx);
+    y = voxel_centre<A>(j, q.gy);
+    z = voxel_centre<A>(r - j * q.gz, q.gz);
+  }
+  return b;
+}
+
+// Linear interpolation along one plane axis of `size` cells: grid_sample's unnormalisation
+// with align_corners=False, clamped to the border (a NaN coordinate clamps to 0).
+template <typename A>
+struct Lerp {
+  int i0, i1;
+  A w;  // weight of i1
+};
+
+template <typename A>
+__device__ __forceinline__ Lerp<A> axis_lerp(A q, int size) {
+  const A u = clamp_border(((q + A(1)) * static_cast<A>(size) - A(1)) / A(2),
+                           static_cast<A>(size - 1));
+  Lerp<A> l;
+  l.i0 = static_cast<int>(u);  // u >= 0: truncation is floor
+  l.i1 = min(l.i0 + 1, size - 1);
+  l.w = u - static_cast<A>(l.i0);
+  return l;
+}
+
+// Bilinear sample of one channel `plane` [rows, cols] (rows along r, cols along c).
+template <typename T, typename A>
+__device__ __forceinline__ A bilinear(const T* __restrict__ plane, int cols, const Lerp<A>& r,
+                                      const Lerp<A>& c) {
+  const T* row0 = plane + static_cast<int64_t>(r.i0) * cols;
+  const T* row1 = plane + static_cast<int64_t>(r.i1) * cols;
+  const A top = (A(1) - c.w) * to_acc(row0[c.i0]) + c.w * to_acc(row0[c.i1]);
+  const A bottom = (A(1) - c.w) * to_acc(row1[c.i0]) + c.w * to_acc(row1[c.i1]);
+  return (A(1) - r.w) * top + r.w * bottom;
+}
+
+// Channel c of xy(x, y) + xz(x, z) + yz(y, z) for a point of batch b.
+template <typename T, typename A>
+__device__ __forceinline__ A plane_feature(const Triplane<T>& t, int64_t b, int c, A x, A y,
+                                           A z) {
+  const Lerp<A> lx = axis_lerp(x, t.sx);
+  const Lerp<A> ly = axis_lerp(y, t.sy);
+  const Lerp<A> lz = axis_lerp(z, t.sz);
+  const int64_t bc = b * t.channels + c;
+  const A sxy = bilinear(t.xy + bc * t.sx * t.sy, t.sy, lx, ly);
+  const A sxz = bilinear(t.xz + bc * t.sx * t.sz, t.sz, lx, lz);
+  const A syz = bilinear(t.yz + bc * t.sy * t.sz, t.sz, ly, lz);
+  return sxy + sxz + syz;
+}
+
+// Entry j of the positional encoding: for k = j / 6, [sin x, sin y, sin z, cos x, cos y,
+// cos z][j % 6] of the coordinates scaled by 2^k (exact in floating point).
+template <typename A>
+__device__ __forceinline__ A pe_value(int j, A x, A y, A z) {
+  const int k = j / 6;
+  const int r = j - 6 * k;
+  const int axis = r % 3;
+  const A q = (axis == 0 ? x : axis == 1 ? y : z) * static_cast<A>(int64_t{1} << k);
+  return r < 3 ? sin_acc(q) : cos_acc(q);
+}
+
+// One linear layer of the fused kernel on the activations of the tile, in place:
+// act[p, o] <- act[p, :in] . weight[o, :in] + bias[o] (ReLU if relu) for o < out, and 0 for
+// out <= o < round_up(out, chunk) so that the next layer's last chunk reads zeros.
+// Thread (pg, og) owns points pg + (P / TP) * i (i < TP) and outputs og + groups_o * j
+// (j < kTileOut). Starts and ends with a barrier, so act may be rewritten freely around it.
+template <int TP, int P, typename T, typename A>
+__device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
+                                          const T* __restrict__ bias, int in, int out,
+                                          bool relu, A* act, A* wsm) {
+  constexpr int kRow = act_row<P>();
+  constexpr int kGroupsP = P / TP;
+  constexpr int kGroupsO = kThreads / kGroupsP;
+  static_assert(kGroupsP * TP == P && kGroupsO * kGroupsP == kThreads, "bad register tile");
+  const int og = threadIdx.x % kGroupsO;
+  const int pg = threadIdx.x / kGroupsO;
+
+  A acc[TP][kTileOut];
+#pragma unroll
+  for (int j = 0; j < kTileOut; ++j) {
+    const int o = og + kGroupsO * j;
+    const A b = o < out ? to_acc(bias[o]) : A(0);
+#pragma unroll
+    for (int i = 0; i < TP; ++i) acc[i][j] = b;
+  }
+
+  for (int k0 = 0; k0 < in; k0 += kChunk) {
+    __syncthreads();  // act is complete, and nobody reads the previous weight chunk any more
+    // wsm[o][kk] = weight[o, k0 + kk]; rows >= out are never loaded (their results are dropped)
+    for (int idx = threadIdx.x; idx < out * kChunk; idx += kThreads) {
+      const int o = idx / kChunk;
+      const int kk = idx - o * kChunk;
+      const int k = k0 + kk;
+      wsm[o * (kChunk + 1) + kk] =
+          k < in ? to_acc(weight[static_cast<int64_t>(o) * in + k]) : A(0);
+    }
+    __syncthreads();
+#pragma unroll
+    for (int kk = 0; kk < kChunk; ++kk) {
+      A a[TP];
+      A w[kTileOut];
+#pragma unroll
+      for (int i = 0; i < TP; ++i) a[i] = act[(k0 + kk) * kRow + pg + kGroupsP * i];
+#pragma unroll
+      for (int j = 0; j < kTileOut; ++j) w[j] = wsm[(og + kGroupsO * j) * (kChunk + 1) + kk];
+#pragma unroll
+      for (int i = 0; i < TP; ++i) {
+#pragma unroll
+        for (int j = 0; j < kTileOut; ++j) acc[i][j] += a[i] * w[j];
+      }
+    }
+  }
+
+  __syncthreads();  // all reads of this layer's inputs are done: overwrite them
+  const int out_pad = round_up(out, kChunk);
+#pragma unroll
+  for (int j = 0; j < kTileOut; ++j) {
+    const int o = og + kGroupsO * j;
+    if (o < out_pad) {
+#pragma unroll
+      for (int i = 0; i < TP; ++i) {
+        A v = acc[i][j];
+        if (relu && v < A(0)) v = A(0);  // keeps NaN, like torch.relu
+        act[o * kRow + pg + kGroupsP * i] = o < out ? v : A(0);
+      }
+    }
+  }
+  __syncthreads();
+}
+
+template <typename T, int P>
+__global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
+    fused_decode_kernel(const Triplane<T> planes, const Query<T> query, const int pe_freqs,
+                        const Mlp<T> mlp, T* __restrict__ logits,
+                        uint8_t* __restrict__ labels) {
+  using A = acc_t<T>;
+  constexpr int kRow = act_row<P>();
+  extern __shared__ __align__(16) unsigned char smem[];
+  int64_t* batch_of = reinterpret_cast<int64_t*>(smem);  // [P]
+  A* coord = reinterpret_cast<A*>(batch_of + P);         // [P][3]
+  A* wsm = coord + 3 * P;                                // [rows][kChunk + 1]
+  A* act = wsm + mlp_weight_rows(P, mlp.width, mlp.num_layers) * (kChunk + 1);  // [width][kRow]
+
+  const int64_t total = planes.batch * query.num_points;
+  const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
+
+  // Padding points of the last tile repeat the last point; their results are not written.
+  for (int p = threadIdx.x; p < P; p += kThreads) {
+    const int64_t g = min(first + p, total - 1);
+    A x, y, z;
+    batch_of[p] = query_point(query, g, x, y, z);
+    coord[3 * p] = x;
+    coord[3 * p + 1] = y;
+    coord[3 * p + 2] = z;
+  }
+  __syncthreads();
+
+  const int channels = planes.channels;
+  const int in0 = mlp.width[0];
+  const int in0_pad = round_up(in0, kChunk);
+  for (int idx = threadIdx.x; idx < P * in0_pad; idx += kThreads) {
+    const int p = idx % P;
+    const int j = idx / P;
+    const A x = coord[3 * p], y = coord[3 * p + 1], z = coord[3 * p + 2];
+    A v = A(0);
+    if (j < channels) {
+      v = plane_feature(planes, batch_of[p], j, x, y, z);
+    } else if (j < in0) {
+      v = pe_value(j - channels, x, y, z);
+    }
+    act[j * kRow + p] = v;
+  }
+  // (mlp_layer starts with a barrier)
+
+  for (int l = 0; l < mlp.num_layers; ++l) {
+    const int in = mlp.width[l];
+    const int out = mlp.width[l + 1];
+    const bool relu = l + 1 < mlp.num_layers;
+    switch (rows_per_thread(P, out)) {
+      case 1:
+        mlp_layer<1, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        break;
+      case 2:
+        mlp_layer<2, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        break;
+      case 4:
+        mlp_layer<4, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        break;
+      default:
+        mlp_layer<kMaxTileRows, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        break;
+    }
+  }
+
+  const int classes = mlp.width[mlp.num_layers];
+  if (logits != nullptr) {
+    for (int idx = threadIdx.x; idx < P * classes; idx += kThreads) {
+      const int p = idx / classes;
+      const int o = idx - p * classes;
+      const int64_t g = first + p;
+      if (g < total) logits[g * classes + o] = from_acc<T>(act[o * kRow + p]);
+    }
+  } else {
+    for (int p = threadIdx.x; p < P; p += kThreads) {
+      const int64_t g = first + p;
+      if (g >= total) continue;
+      // Compare the values rounded to T, so that the labels are exactly the argmax of the
+      // logits this kernel would write; first maximum wins, NaN counts as the maximum.
+      A best = to_acc(from_acc<T>(act[p]));
+      int best_o = 0;
+      for (int o = 1; o < classes; ++o) {
+        const A v = to_acc(from_acc<T>(act[o * kRow + p]));
+        if (v > best || (v != v && best == best)) {
+          best = v;
+          best_o = o;
+        }
+      }
+      labels[g] = static_cast<uint8_t>(best_o);
+    }
+  }
+}
+
+// Shared memory of fused_decode_kernel<T, P> for these widths.
+template <typename A, int P>
+size_t fused_shared_bytes(const int* widths, int num_layers) {
+  int widest = 1;  // at least one row: the argmax epilogue reads row 0 even with no classes
+  for (int i = 0; i <= num_layers; ++i) widest = widths[i] > widest ? widths[i] : widest;
+  const size_t values = 3 * P +
+                        static_cast<size_t>(mlp_weight_rows(P, widths, num_layers)) * (kChunk + 1) +
+                        static_cast<size_t>(round_up(widest, kChunk)) * act_row<P>();
+  return P * sizeof(int64_t) + values * sizeof(A);
+}
+
+template <typename T, int P>
+bool fused_fits(const Mlp<T>& mlp, int widest_out, int max_shared_bytes) {
+  return widest_out <= outputs_covered(P, kMaxTileRows) &&
+         fused_shared_bytes<acc_t<T>, P>(mlp.width, mlp.num_layers) <=
+             static_cast<size_t>(max_shared_bytes);
+}
+
+template <typename T, int P>
+cudaError_t launch_fused(const Triplane<T>& planes, const Query<T>& query, int pe_freqs,
+                         const Mlp<T>& mlp, T* logits, uint8_t* labels, cudaStream_t stream) {
+  const size_t smem = fused_shared_bytes<acc_t<T>, P>(mlp.width, mlp.num_layers);
+  const int64_t total = planes.batch * query.num_points;
+  const int64_t blocks = (total + P - 1) / P;
+  if (blocks > INT_MAX) return cudaErrorInvalidConfiguration;
+  auto* kernel = fused_decode_kernel<T, P>;
+  const cudaError_t err = cudaFuncSetAttribute(
+      kernel, cudaFuncAttributeMaxDynamicSharedMemorySize, static_cast<int>(smem));
+  if (err != cudaSuccess) return err;
+  kernel<<<static_cast<unsigned>(blocks), kThreads, smem, stream>>>(planes, query, pe_freqs, mlp,
+                                                                    logits, labels);
+  return cudaGetLastError();
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kThreads)
+    features_kernel(const Triplane<T> planes, const Query<T> query, const int pe_freqs,
+                    const int64_t start, const int64_t count, acc_t<T>* __restrict__ out) {
+  using A = acc_t<T>;
+  const int in0 = planes.channels + 6 * pe_freqs;
+  const int64_t n = count * in0;
+  for (int64_t idx = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x; idx < n;
+       idx += static_cast<int64_t>(gridDim.x) * kThreads) {
+    const int64_t p = idx / in0;
+    const int j = static_cast<int>(idx - p * in0);
+    A x, y, z;
+    const int64_t b = query_point(query, start + p, x, y, z);
+    out[idx] = j < planes.channels ? plane_feature(planes, b, j, x, y, z)
+                                   : pe_value(j - planes.channels, x, y, z);
+  }
+}
+
+// grad[rows, cols] += weights of the bilinear sample at (r, c) times g.
+template <typename A>
+__device__ __forceinline__ void scatter_bilinear(A* grad, int cols, const Lerp<A>& r,
+                                                 const Lerp<A>& c, A g) {
+  A* row0 = grad + static_cast<int64_t>(r.i0) * cols;
+  A* row1 = grad + static_cast<int64_t>(r.i1) * cols;
+  const A g0 = (A(1) - r.w) * g;
+  const A g1 = r.w * g;
+  atomicAdd(row0 + c.i0, (A(1) - c.w) * g0);
+  atomicAdd(row0 + c.i1, c.w * g0);
+  atomicAdd(row1 + c.i0, (A(1) - c.w) * g1);
+  atomicAdd(row1 + c.i1, c.w * g1);
+}
+
+// One thread per (point, channel), channels fastest: coalesced reads of the feature gradient,
+// and the atomics of a warp spread over several plane channels.
+template <typename T>
+__global__ void __launch_bounds__(kThreads)
+    scatter_kernel(const Triplane<T> planes, const Query<T> query, const int64_t start,
+                   const int64_t count, const acc_t<T>* __restrict__ grad, const int64_t ld,
+                   acc_t<T>* gxy, acc_t<T>* gxz, acc_t<T>* gyz) {
+  using A = acc_t<T>;
+  const int channels = planes.channels;
+  const int64_t n = count * channels;
+  for (int64_t idx = static_cast<int64_t>(blockIdx.x) * kThreads + threadIdx.x; idx < n;
+       idx += static_cast<int64_t>(gridDim.x) * kThreads) {
+    const int64_t p = idx / channels;
+    const int c = static_cast<int>(idx - p * channels);
+    const A g = grad[p * ld + c];
+    A x, y, z;
+    const int64_t b = query_point(query, start + p, x, y, z);
+    const Lerp<A> lx = axis_lerp(x, planes.sx);
+    const Lerp<A> ly = axis_lerp(y, planes.sy);
+    const Lerp<A> lz = axis_lerp(z, planes.sz);
+    const int64_t bc = b * channels + c;
+    scatter_bilinear(gxy + bc * planes.sx * planes.sy, planes.sy, lx, ly, g);
+    scatter_bilinear(gxz + bc * planes.sx * planes.sz, planes.sz, lx, lz, g);
+    scatter_bilinear(gyz + bc * planes.sy * planes.sz, planes.sz, ly, lz, g);
+  }
+}
+
+unsigned grid_stride_blocks(int64_t n) {
+  const int64_t blocks = (n + kThreads - 1) / kThreads;
+  return static_cast<unsigned>(blocks < kMaxGridBlocks ? blocks : kMaxGridBlocks);
+}
+
+}  // namespace
+
+size_t triplane_decode_min_shared_bytes(const int* widths, int num_layers,
+                                        bool double_precision) {
+  for (int i = 0; i <= num_layers; ++i) {
+    if (widths[i] > kTriplaneMaxWidth) return 0;
+  }
+  constexpr int kSmallestTile = 32;
+  return double_precision ? fused_shared_bytes<double, kSmallestTile>(widths, num_layers)
+                          : fused_shared_bytes<float, kSmallestTile>(widths, num_layers);
+}
+
+template <typename T>
+cudaError_t triplane_decode_forward(const Triplane<T>& planes, const Query<T>& query,
+                                    int pe_freqs, const Mlp<T>& mlp, T* logits, uint8_t* labels,
+                                    cudaStream_t stream) {
+  if (planes.batch * query.num_points == 0) return cudaSuccess;
+  int device = 0;
+  int optin = 0;
+  cudaError_t err = cudaGetDevice(&device);
+  if (err != cudaSuccess) return err;
+  err = cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, device);
+  if (err != cudaSuccess) return err;
+  int widest_out = 0;
+  for (int i = 1; i <= mlp.num_layers; ++i) {
+    widest_out = mlp.width[i] > widest_out ? mlp.width[i] : widest_out;
+  }
+  // The largest point tile whose register tiles cover the widest layer and whose buffers
+  // fit the device: more points per tile means fewer passes of the weights through L2.
+  if (fused_fits<T, 128>(mlp, widest_out, optin)) {
+    return launch_fused<T, 128>(planes, query, pe_freqs, mlp, logits, labels, stream);
+  }
+  if (fused_fits<T, 64>(mlp, widest_out, optin)) {
+    return launch_fused<T, 64>(planes, query, pe_freqs, mlp, logits, labels, stream);
+  }
+  if (fused_fits<T, 32>(mlp, widest_out, optin)) {
+    return launch_fused<T, 32>(planes, query, pe_freqs, mlp, logits, labels, stream);
+  }
+  return cudaErrorInvalidValue;
+}
+
+template <typename T>
+cudaError_t triplane_features(const Triplane<T>& planes, const Query<T>& query, int pe_freqs,
+                              int64_t start, int64_t count, acc_t<T>* features,
+                              cudaStream_t stream) {
+  const int64_t n = count * (planes.channels + 6 * pe_freqs);
+  if (n == 0) return cudaSuccess;
+  features_kernel<T><<<grid_stride_blocks(n), kThreads, 0, stream>>>(planes, query, pe_freqs,
+                                                                     start, count, features);
+  return cudaGetLastError();
+}
+
+template <typename T>
+cudaError_t triplane_scatter_grad(const Triplane<T>& planes, const Query<T>& query,
+                                  int64_t start, int64_t count, const acc_t<T>* grad_features,
+                                  int64_t ld, acc_t<T>* grad_xy, acc_t<T>* grad_xz,
+                                  acc_t<T>* grad_yz, cudaStream_t stream) {
+  const int64_t n = count * planes.channels;
+  if (n == 0) return cudaSuccess;
+  scatter_kernel<T><<<grid_stride_blocks(n), kThreads, 0, stream>>>(
+      planes, query, start, count, grad_features, ld, grad_xy, grad_xz, grad_yz);
+  return cudaGetLastError();
+}
+
+#define T3FAST_INSTANTIATE(T)                                                                  \
+  template cudaError_t triplane_decode_forward<T>(const Triplane<T>&, const Query<T>&, int,    \
+                                                  const Mlp<T>&, T*, uint8_t*, cudaStream_t);  \
+  template cudaError_t triplane_features<T>(const Triplane<T>&, const Query<T>&, int, int64_t, \
+                                            int64_t, acc_t<T>*, cudaStream_t);                 \
+  template cudaError_t triplane_scatter_grad<T>(const Triplane<T>&, const Query<T>&, int64_t,  \
+                                                int64_t, const acc_t<T>*, int64_t, acc_t<T>*,  \
+                                                acc_t<T>*, acc_t<T>*, cudaStream_t);
+
+T3FAST_INSTANTIATE(float)
+T3FAST_INSTANTIATE(double)
+T3FAST_INSTANTIATE(__half)
+T3FAST_INSTANTIATE(__nv_bfloat16)
+
+#undef T3FAST_INSTANTIATE
+
+}  // namespace cuda
+}  // namespace t3fast

@@ -1,8 +1,7 @@
 """Reports every benchmark group as a speed ratio: reference time / fused time (medians,
 robust to a busy machine).
 
-Each group holds one fused and one reference benchmark (names end in ``[fused]`` /
-``[reference]``); the ratios are printed after the run and stored in the JSON
+Each group holds one fused and one reference benchmark (parameter ``impl``); the ratios are printed after the run and stored in the JSON
 (``--benchmark-json``) under ``"ratios"``.
 """
 
@@ -14,7 +13,7 @@ from collections import defaultdict
 def _ratios(benchmarks) -> dict[str, dict[str, float]]:
     by_group: dict[str, dict[str, object]] = defaultdict(dict)
     for bench in benchmarks:
-        impl = "fused" if bench.name.endswith("[fused]") else "reference"
+        impl = bench.params["impl"]
         by_group[bench.group][impl] = bench
     out = {}
     for group, pair in sorted(by_group.items()):

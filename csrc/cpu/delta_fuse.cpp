@@ -16,16 +16,26 @@ constexpr const char* kOp = "delta_fuse";
 constexpr const char* kOpBwd = "delta_fuse_backward";
 constexpr int64_t kBlock = 2048;  // pixels per block: 64 channels x 2048 floats = 512 KiB
 
+// Pixel blocks of at most kBlock pixels, as many per batch element as keeps every thread
+// busy (a multiple of the thread count when the batch alone cannot).
 struct Blocks {
-  int64_t B, HW, per_batch, total;
-  Blocks(int64_t b, int64_t hw) : B(b), HW(hw), per_batch((hw + kBlock - 1) / kBlock) {
+  int64_t HW, per_batch, size, total;
+  Blocks(int64_t B, int64_t hw) : HW(hw) {
+    const int64_t threads = at::get_num_threads();
+    per_batch = std::max<int64_t>(1, (hw + kBlock - 1) / kBlock);
+    if (B > 0 && B < threads) {
+      const int64_t share = (threads + B - 1) / B;
+      per_batch = (per_batch + share - 1) / share * share;
+    }
+    per_batch = std::min(per_batch, std::max<int64_t>(1, hw));
+    size = (hw + per_batch - 1) / per_batch;
     total = B * per_batch;
   }
-  // (batch, first pixel, pixel count) of block i
+  // (batch, first pixel, pixel count) of block i; the last blocks may be short or empty
   void get(int64_t i, int64_t& b, int64_t& p0, int64_t& n) const {
     b = i / per_batch;
-    p0 = (i % per_batch) * kBlock;
-    n = std::min(kBlock, HW - p0);
+    p0 = std::min(HW, (i % per_batch) * size);
+    n = std::min(size, HW - p0);
   }
 };
 
@@ -97,6 +107,7 @@ at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
       for (int64_t i = i0; i < i1; ++i) {
         int64_t b, p0, n;
         blocks.get(i, b, p0, n);
+        if (n == 0) continue;
         add_bias_block(po + b * C * HW + p0, pd + b * C * HW + p0, pb, C, HW, n);
         at::Tensor dst = out[b].narrow(1, p0, n);
         dst.addmm_(w, pv[b].narrow(1, p0, n));
@@ -136,6 +147,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
     for (int64_t i = i0; i < i1; ++i) {
       int64_t b, p0, n;
       blocks.get(i, b, p0, n);
+      if (n == 0) continue;
       const at::Tensor g_blk = g[b].narrow(1, p0, n);
       const at::Tensor p_blk = pv[b].narrow(1, p0, n);
       at::Tensor gp_blk = grad_prev[b].narrow(1, p0, n);

@@ -1,8 +1,8 @@
 """Reports every benchmark group as a speed ratio: reference time / fused time (medians,
 robust to a busy machine).
 
-Each group holds one fused and one reference benchmark (parameter ``impl``); the ratios are printed after the run and stored in the JSON
-(``--benchmark-json``) under ``"ratios"``.
+Each group holds one fused and one reference benchmark (parameter ``impl``); the ratios are
+printed after the run and stored in the JSON (``--benchmark-json``) under ``"ratios"``.
 """
 
 from __future__ import annotations

@@ -1,0 +1,40 @@
+"""Atomic checkpoint writes: no temporary files left, an interrupted write keeps the old file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import t3fast.training.checkpoint as ckpt
+from t3fast.training.checkpoint import load_checkpoint, save_checkpoint
+
+
+def test_round_trip_leaves_only_the_checkpoint(tmp_path: Path) -> None:
+    state = {"model": {"w": torch.arange(6.0).reshape(2, 3)}, "step": 3, "best_score": float("-inf")}
+    path = tmp_path / "sub" / "last.pt"
+    save_checkpoint(state, path)
+    save_checkpoint({**state, "step": 4}, path)  # overwrite in place
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.pt"]
+    loaded = load_checkpoint(path)
+    assert loaded["step"] == 4 and torch.equal(loaded["model"]["w"], state["model"]["w"])
+
+
+@pytest.mark.parametrize("error", [OSError("disk full"), KeyboardInterrupt()])
+def test_failed_write_keeps_the_old_checkpoint(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, error: BaseException
+) -> None:
+    path = tmp_path / "last.pt"
+    save_checkpoint({"step": 1}, path)
+
+    def failing_save(obj: object, f) -> None:
+        f.write(b"half a checkpoint")
+        raise error
+
+    monkeypatch.setattr(ckpt.torch, "save", failing_save)
+    with pytest.raises(type(error)):
+        save_checkpoint({"step": 2}, path)
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]

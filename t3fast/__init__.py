@@ -17,6 +17,10 @@ _LAZY = {
     "triplane_decode": "t3fast.ops",
     "axis_pool": "t3fast.ops",
     "delta_fuse": "t3fast.ops",
+    "Triplane": "t3fast.models",
+    "TriplaneAutoencoder": "t3fast.models",
+    "TriplaneDecoder": "t3fast.models",
+    "TriplaneEncoder": "t3fast.models",
 }
 
 

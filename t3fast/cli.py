@@ -8,6 +8,7 @@ import sys
 
 def build_parser() -> argparse.ArgumentParser:
     from t3fast.data.commands import add_data_commands
+    from t3fast.training.commands import add_training_commands
 
     parser = argparse.ArgumentParser(prog="t3fast", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -16,6 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(func=_info)
 
     add_data_commands(sub)
+    add_training_commands(sub)
     return parser
 
 

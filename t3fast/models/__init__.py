@@ -1,0 +1,18 @@
+"""Models of T3Former: the triplane autoencoder (encoder, decoder)."""
+
+from t3fast.models.autoencoder import TriplaneAutoencoder
+from t3fast.models.config import PAPER, SMALL, AutoencoderConfig, named_config
+from t3fast.models.decoder import TriplaneDecoder
+from t3fast.models.encoder import TriplaneEncoder
+from t3fast.models.triplane import Triplane
+
+__all__ = [
+    "PAPER",
+    "SMALL",
+    "AutoencoderConfig",
+    "Triplane",
+    "TriplaneAutoencoder",
+    "TriplaneDecoder",
+    "TriplaneEncoder",
+    "named_config",
+]

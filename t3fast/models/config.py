@@ -1,0 +1,79 @@
+"""Named sizes of the triplane autoencoder."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field, replace
+
+from t3fast.data.classes import GRID_SHAPE, NUM_CLASSES
+
+
+@dataclass
+class AutoencoderConfig:
+    """Sizes of :class:`TriplaneEncoder` and :class:`TriplaneDecoder`.
+
+    ``latent="triplane"`` pools the encoded volume into three planes of ``channels``
+    channels; ``latent="bev"`` keeps only the xy plane (the BEV-only ablation; raise
+    ``channels`` to match the triplane's latent size).
+    """
+
+    grid: tuple[int, int, int] = GRID_SHAPE
+    num_classes: int = NUM_CLASSES
+    latent: str = "triplane"
+    embed_dim: int = 16  # class embedding width
+    full_res_channels: int = 32  # width of the blocks at 200 x 200 x 16
+    full_res_blocks: int = 1
+    half_res_channels: int = 64  # width of the blocks after the (2, 2, 1) downsample
+    half_res_blocks: int = 2
+    channels: int = 8  # C: triplane channels
+    decoder_channels: int = 64  # C_f: plane channels after refinement
+    decoder_hidden: list[int] = field(default_factory=lambda: [256, 256, 256, 256])
+    pe_freqs: int = 6
+    refine: bool = True
+
+    def __post_init__(self) -> None:
+        if self.latent not in ("triplane", "bev"):
+            raise ValueError(f"latent must be 'triplane' or 'bev', got {self.latent!r}")
+        self.grid = tuple(self.grid)
+
+    @property
+    def plane_shape(self) -> tuple[int, int, int]:
+        """(X', Y', Z') of the planes: x and y halved, z kept."""
+        x, y, z = self.grid
+        return (x + 1) // 2, (y + 1) // 2, z
+
+
+# The papers' sizes (triplane 8 x (100x100 + 2 x 100x16)): for GPUs.
+PAPER = AutoencoderConfig()
+# Fits training on a 2-core CPU: narrow 3D blocks (most of the cost), decoder C_f = 32,
+# hidden 128 x 2. Same latent as the papers: 8 x (100x100 + 2 x 100x16).
+SMALL = AutoencoderConfig(
+    embed_dim=8,
+    full_res_channels=8,
+    full_res_blocks=0,
+    half_res_channels=16,
+    half_res_blocks=1,
+    channels=8,
+    decoder_channels=32,
+    decoder_hidden=[128, 128],
+)
+
+CONFIGS = {"paper": PAPER, "small": SMALL}
+
+
+def bev_variant(cfg: AutoencoderConfig) -> AutoencoderConfig:
+    """The BEV-only latent with about the triplane's latent size: one X'Y' plane with
+    ceil(C (X'Y' + X'Z' + Y'Z') / X'Y') channels."""
+    x, y, z = cfg.plane_shape
+    size = cfg.channels * (x * y + x * z + y * z)
+    return replace(cfg, latent="bev", channels=-(-size // (x * y)))
+
+
+def named_config(name: str) -> AutoencoderConfig:
+    """``"small"``, ``"paper"``, or either with ``"-bev"`` appended."""
+    base, _, variant = name.partition("-")
+    if base not in CONFIGS or variant not in ("", "bev"):
+        raise ValueError(f"unknown autoencoder config {name!r}; expected one of "
+                         f"{sorted(CONFIGS)} optionally followed by '-bev'")
+    cfg = copy.deepcopy(CONFIGS[base])
+    return bev_variant(cfg) if variant else cfg

@@ -1,0 +1,32 @@
+"""The triplane container."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from torch import Tensor
+
+
+class Triplane(NamedTuple):
+    """Three feature planes of one occupancy volume.
+
+    Attributes:
+        xy: ``[B, C, X', Y']`` (mean over height).
+        xz: ``[B, C, X', Z']`` (mean over y).
+        yz: ``[B, C, Y', Z']`` (mean over x).
+
+    Every function that takes a ``Triplane`` also takes a plain ``(xy, xz, yz)`` tuple. A
+    BEV-only latent has ``xz`` and ``yz`` set to None.
+    """
+
+    xy: Tensor
+    xz: Tensor
+    yz: Tensor
+
+    def numel_per_sample(self) -> int:
+        """Latent size of one sample: C * (X'Y' + X'Z' + Y'Z')."""
+        return sum(p[0].numel() for p in self if p is not None)
+
+    def map(self, fn) -> Triplane:
+        """Applies ``fn`` to each plane."""
+        return Triplane(*(None if p is None else fn(p) for p in self))

@@ -1,0 +1,139 @@
+"""Stage 1: pretraining the triplane autoencoder (a :class:`~t3fast.training.trainer.Task`)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+from torch.utils.data import Dataset
+
+from t3fast.data.synthetic import SyntheticFrames
+from t3fast.evaluation.reconstruction import evaluate_reconstruction
+from t3fast.models.autoencoder import TriplaneAutoencoder
+from t3fast.models.config import AutoencoderConfig, named_config
+from t3fast.training.config import config_to_dict
+from t3fast.training.losses import occupancy_loss
+from t3fast.training.sampling import sample_query_points
+from t3fast.training.trainer import TrainConfig
+
+
+@dataclass
+class FramesConfig:
+    """Where single occupancy frames come from."""
+
+    source: str = "synthetic"  # "synthetic" or "occ3d"
+    train_scenes: int = 200  # synthetic scenes of the train split
+    val_scenes: int = 2  # synthetic scenes scored during training
+    val_stride: int = 4  # every k-th frame of those
+    frames_per_scene: int = 40
+    flip: bool = True  # random x/y flips of training frames
+    occ3d_root: str = ""  # directory holding gts/
+    occ3d_train_info: str = ""  # info pickles
+    occ3d_val_info: str = ""
+
+
+@dataclass
+class LossConfig:
+    """Stage-1 loss: cross-entropy + lovasz_weight * Lovasz-softmax."""
+
+    lovasz_weight: float = 1.0
+    full_grid: bool = False  # decode every voxel instead of sampled points
+    num_occupied: int = 40_000  # all occupied voxels up to this many per frame
+    num_near_free: int = 20_000  # free voxels next to a surface
+    num_far_free: int = 10_000  # other free voxels
+
+
+@dataclass
+class Stage1Config:
+    """Everything ``t3fast train-ae`` needs."""
+
+    model: AutoencoderConfig = field(default_factory=AutoencoderConfig)
+    data: FramesConfig = field(default_factory=FramesConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    decoder_backend: str = "fused"  # "reference" for comparisons
+
+
+def _preset(model: str, train_scenes: int = 200, **train) -> Stage1Config:
+    cfg = Stage1Config(model=named_config(model), data=FramesConfig(train_scenes=train_scenes))
+    for key, value in train.items():
+        setattr(cfg.train, key, value)
+    return cfg
+
+
+# small: fits this project's 2-core CPU budget; paper: the papers' sizes and batch 10, for GPUs.
+PRESETS = {
+    "small": lambda: _preset("small", train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_steps=100,
+                             log_every=25, eval_every=500, ckpt_every=250, out_dir="runs/ae-small"),
+    "small-bev": lambda: _preset("small-bev", train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_steps=100,
+                                 log_every=25, eval_every=500, ckpt_every=250, out_dir="runs/ae-small-bev"),
+    "paper": lambda: _preset("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
+                             eval_every=2000, ckpt_every=1000, out_dir="runs/ae-paper"),
+}
+
+
+def preset(name: str) -> Stage1Config:
+    """A named stage-1 configuration (see ``PRESETS``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown stage-1 config {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+def frames_dataset(data: FramesConfig, split: str) -> Dataset:
+    """Single ``uint8 [200, 200, 16]`` frames of a split."""
+    if data.source == "synthetic":
+        scenes = data.train_scenes if split == "train" else data.val_scenes
+        return SyntheticFrames(split, scenes, data.frames_per_scene, flip=data.flip and split == "train")
+    if data.source == "occ3d":
+        from t3fast.data.occ3d_frames import Occ3DFrames
+
+        info = data.occ3d_train_info if split == "train" else data.occ3d_val_info
+        return Occ3DFrames(data.occ3d_root, info, flip=data.flip and split == "train")
+    raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
+
+
+class AutoencoderTask:
+    """Trains :class:`TriplaneAutoencoder` on single frames; scores reconstruction mIoU."""
+
+    def __init__(self, cfg: Stage1Config):
+        self.cfg = copy.deepcopy(cfg)
+        self._val = None
+
+    def build_model(self) -> nn.Module:
+        return TriplaneAutoencoder(self.cfg.model, decoder_backend=self.cfg.decoder_backend)
+
+    def train_dataset(self) -> Dataset:
+        return frames_dataset(self.cfg.data, "train")
+
+    def collate(self, batch_list: list[Tensor]) -> Tensor:
+        return torch.stack(batch_list)
+
+    def samples_in(self, batch: Tensor) -> int:
+        return batch.shape[0]
+
+    def training_step(self, model: nn.Module, labels: Tensor) -> tuple[Tensor, dict[str, float]]:
+        loss_cfg = self.cfg.loss
+        if loss_cfg.full_grid:
+            logits, targets = model(labels), labels.long()
+        else:
+            points, targets = sample_query_points(
+                labels, loss_cfg.num_occupied, loss_cfg.num_near_free, loss_cfg.num_far_free
+            )
+            logits = model(labels, points)
+        loss, parts = occupancy_loss(logits, targets, lovasz_weight=loss_cfg.lovasz_weight)
+        return loss, {k: float(v) for k, v in parts.items()}
+
+    def evaluate(self, model: nn.Module) -> dict[str, float]:
+        if self._val is None:
+            self._val = frames_dataset(self.cfg.data, "val")
+        indices = list(range(0, len(self._val), self.cfg.data.val_stride))
+        device = next(model.parameters()).device
+        metrics = evaluate_reconstruction(model, self._val, indices, device=device, progress=False)
+        metrics.all_reduce()
+        summary = metrics.summary()
+        return {"score": summary["miou"], "miou": summary["miou"], "iou": summary["iou"]}
+
+    def config_dict(self) -> dict:
+        return config_to_dict(self.cfg)

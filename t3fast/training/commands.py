@@ -1,0 +1,96 @@
+"""``t3fast train-ae`` and ``t3fast eval-ae``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+
+def add_training_commands(sub: argparse._SubParsersAction) -> None:
+    train = sub.add_parser("train-ae", help="pretrain the triplane autoencoder (stage 1)")
+    train.add_argument("--config", default="small", help="preset (small, small-bev, paper) or a YAML/JSON file")
+    train.add_argument("--data", choices=["synthetic", "occ3d"], help="frame source (overrides the config)")
+    train.add_argument("--resume", action="store_true", help="continue from OUT_DIR/last.pt")
+    train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=500 model.channels=16")
+    train.set_defaults(func=_train_ae)
+
+    evaluate = sub.add_parser("eval-ae", help="reconstruction table of a stage-1 checkpoint")
+    evaluate.add_argument("ckpt", type=Path, help="checkpoint (best.pt / last.pt)")
+    evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
+    evaluate.add_argument("--scenes", type=int, default=10, help="synthetic scenes of the split")
+    evaluate.add_argument("--stride", type=int, default=1, help="score every k-th frame")
+    evaluate.add_argument("--out", type=Path, help="write the results as JSON here")
+    evaluate.set_defaults(func=_eval_ae)
+
+
+def _stage1_config(name: str, overrides: list[str]):
+    from t3fast.training.autoencoder import PRESETS, Stage1Config, preset
+    from t3fast.training.config import config_to_dict, load_config
+
+    base = preset(name) if name in PRESETS else load_config(Stage1Config, name)
+    return load_config(Stage1Config, config_to_dict(base), overrides)
+
+
+def _train_ae(args: argparse.Namespace) -> int:
+    from t3fast.training.autoencoder import AutoencoderTask
+    from t3fast.training.config import save_config
+    from t3fast.training.distributed import cleanup, is_main
+    from t3fast.training.trainer import Trainer
+
+    overrides = list(args.overrides)
+    if args.data:
+        overrides.append(f"data.source={args.data}")
+    if args.resume:
+        overrides.append("train.resume=true")
+    cfg = _stage1_config(args.config, overrides)
+    task = AutoencoderTask(cfg)
+    trainer = Trainer(task, cfg.train)
+    if is_main():
+        Path(cfg.train.out_dir).mkdir(parents=True, exist_ok=True)
+        save_config(cfg, Path(cfg.train.out_dir) / "config.yaml")
+        params = sum(p.numel() for p in trainer.module.parameters())
+        enc = sum(p.numel() for p in trainer.module.encoder.parameters())
+        print(f"autoencoder {args.config}: {params:,} parameters (encoder {enc:,}, decoder {params - enc:,})")
+    result = trainer.fit()
+    if is_main():
+        print(json.dumps(result, indent=2))
+    cleanup()
+    return 130 if trainer.interrupted else 0
+
+
+def _eval_ae(args: argparse.Namespace) -> int:
+    from t3fast.data.synthetic import SyntheticFrames
+    from t3fast.evaluation.reconstruction import evaluate_reconstruction
+    from t3fast.models.autoencoder import TriplaneAutoencoder
+    from t3fast.training.autoencoder import Stage1Config
+    from t3fast.training.checkpoint import load_checkpoint
+    from t3fast.training.config import load_config
+
+    state = load_checkpoint(args.ckpt)
+    cfg = load_config(Stage1Config, state["config"]["task"])
+    model = TriplaneAutoencoder(cfg.model)
+    model.load_state_dict(state["model"])
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    model.to(device)
+    frames = SyntheticFrames(args.split, args.scenes, cfg.data.frames_per_scene)
+    indices = list(range(0, len(frames), args.stride))
+    metrics = evaluate_reconstruction(model, frames, indices, device=device)
+    summary = metrics.summary()
+    print(f"reconstruction, synthetic {args.split}: {args.scenes} scenes, {len(indices)} frames, step {state['step']}")
+    print(metrics.table())
+    print(f"mIoU (classes without ground truth skipped): {100 * metrics.miou(absent='skip'):.2f}")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        summary.update(step=state["step"], split=args.split, frames=len(indices), latent=cfg.model.latent,
+                       latent_size=_latent_size(model))
+        args.out.write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def _latent_size(model) -> int:
+    x, y, z = model.config.plane_shape
+    c = model.config.channels
+    return c * x * y if model.config.latent == "bev" else c * (x * y + x * z + y * z)

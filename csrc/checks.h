@@ -126,4 +126,85 @@ inline void check_query(const at::Tensor& xy, const c10::optional<at::Tensor>& p
   }
 }
 
+// axis_pool: volume [B, C, X, Y, Z] with non-empty X, Y, Z.
+inline void check_volume(const at::Tensor& volume, const char* op) {
+  check_dim(volume, op, "volume", 5, "[B, C, X, Y, Z]");
+  check_float_dtype(volume, op, "volume");
+  T3FAST_CHECK(volume.size(2) > 0 && volume.size(3) > 0 && volume.size(4) > 0, op,
+               "volume must have non-empty X, Y, Z, got ", volume.sizes());
+}
+
+// axis_pool_backward: grad_xy [B, C, X, Y], grad_xz [B, C, X, Z], grad_yz [B, C, Y, Z].
+inline void check_plane_grads(const at::Tensor& grad_xy, const at::Tensor& grad_xz,
+                              const at::Tensor& grad_yz, const char* op) {
+  check_dim(grad_xy, op, "grad_xy", 4, "[B, C, X, Y]");
+  check_dim(grad_xz, op, "grad_xz", 4, "[B, C, X, Z]");
+  check_dim(grad_yz, op, "grad_yz", 4, "[B, C, Y, Z]");
+  check_float_dtype(grad_xy, op, "grad_xy");
+  check_same_dtype(grad_xz, grad_xy, op, "grad_xz", "grad_xy");
+  check_same_dtype(grad_yz, grad_xy, op, "grad_yz", "grad_xy");
+  check_same_device(grad_xz, grad_xy, op, "grad_xz", "grad_xy");
+  check_same_device(grad_yz, grad_xy, op, "grad_yz", "grad_xy");
+  check_size(grad_xz, op, "grad_xz", 0, grad_xy.size(0), "batch, as grad_xy");
+  check_size(grad_xz, op, "grad_xz", 1, grad_xy.size(1), "channels, as grad_xy");
+  check_size(grad_xz, op, "grad_xz", 2, grad_xy.size(2), "X, as grad_xy.shape[2]");
+  check_size(grad_yz, op, "grad_yz", 0, grad_xy.size(0), "batch, as grad_xy");
+  check_size(grad_yz, op, "grad_yz", 1, grad_xy.size(1), "channels, as grad_xy");
+  check_size(grad_yz, op, "grad_yz", 2, grad_xy.size(3), "Y, as grad_xy.shape[3]");
+  check_size(grad_yz, op, "grad_yz", 3, grad_xz.size(3), "Z, as grad_xz.shape[3]");
+}
+
+// delta_fuse (and its backward): prev [B, C_in, H, W], weight [C, C_in].
+inline void check_prev_weight(const at::Tensor& prev, const at::Tensor& weight, const char* op) {
+  check_dim(prev, op, "prev", 4, "[B, C_in, H, W]");
+  check_dim(weight, op, "weight", 2, "[C, C_in]");
+  check_float_dtype(prev, op, "prev");
+  check_same_dtype(weight, prev, op, "weight", "prev");
+  check_same_device(weight, prev, op, "weight", "prev");
+  check_size(weight, op, "weight", 1, prev.size(1), "C_in, as prev.shape[1]");
+}
+
+// delta_fuse: delta [B, C, H, W], prev [B, C_in, H, W], weight [C, C_in], bias [C] or none.
+inline void check_delta_fuse(const at::Tensor& delta, const at::Tensor& prev,
+                             const at::Tensor& weight, const c10::optional<at::Tensor>& bias,
+                             const char* op) {
+  check_dim(delta, op, "delta", 4, "[B, C, H, W]");
+  check_float_dtype(delta, op, "delta");
+  check_prev_weight(prev, weight, op);
+  check_same_dtype(prev, delta, op, "prev", "delta");
+  check_same_device(prev, delta, op, "prev", "delta");
+  check_size(prev, op, "prev", 0, delta.size(0), "batch, as delta");
+  check_size(prev, op, "prev", 2, delta.size(2), "H, as delta");
+  check_size(prev, op, "prev", 3, delta.size(3), "W, as delta");
+  check_size(weight, op, "weight", 0, delta.size(1), "C, as delta.shape[1]");
+  if (bias.has_value()) {
+    check_dim(*bias, op, "bias", 1, "[C]");
+    check_same_dtype(*bias, delta, op, "bias", "delta");
+    check_same_device(*bias, delta, op, "bias", "delta");
+    check_size(*bias, op, "bias", 0, delta.size(1), "C, as delta.shape[1]");
+  }
+}
+
+// delta_fuse_backward: grad_out [B, C, H, W] against prev [B, C_in, H, W], weight [C, C_in].
+inline void check_delta_fuse_backward(const at::Tensor& grad_out, const at::Tensor& prev,
+                                      const at::Tensor& weight, const char* op) {
+  check_prev_weight(prev, weight, op);
+  check_dim(grad_out, op, "grad_out", 4, "[B, C, H, W]");
+  check_same_dtype(grad_out, prev, op, "grad_out", "prev");
+  check_same_device(grad_out, prev, op, "grad_out", "prev");
+  check_size(grad_out, op, "grad_out", 0, prev.size(0), "batch, as prev");
+  check_size(grad_out, op, "grad_out", 1, weight.size(0), "C, as weight.shape[0]");
+  check_size(grad_out, op, "grad_out", 2, prev.size(2), "H, as prev");
+  check_size(grad_out, op, "grad_out", 3, prev.size(3), "W, as prev");
+}
+
+// triplane_decode_backward: grad_out must have the forward output's shape, dtype, device.
+inline void check_grad_out(const at::Tensor& grad_out, const at::Tensor& xy,
+                           at::IntArrayRef shape, const char* op) {
+  T3FAST_CHECK(grad_out.sizes() == shape, op, "grad_out must have shape ", shape, ", got ",
+               grad_out.sizes());
+  check_same_dtype(grad_out, xy, op, "grad_out", "xy");
+  check_same_device(grad_out, xy, op, "grad_out", "xy");
+}
+
 }  // namespace t3fast

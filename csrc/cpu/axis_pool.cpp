@@ -61,12 +61,9 @@ T3FAST_SIMD_CLONES void unpool_rows(const T* gxy, const T* gxz, const T* gyz, T*
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& volume) {
-  check_dim(volume, kOp, "volume", 5, "[B, C, X, Y, Z]");
-  check_float_dtype(volume, kOp, "volume");
+  check_volume(volume, kOp);
   const int64_t B = volume.size(0), C = volume.size(1), X = volume.size(2), Y = volume.size(3),
                 Z = volume.size(4);
-  T3FAST_CHECK(X > 0 && Y > 0 && Z > 0, kOp, "volume must have non-empty X, Y, Z, got ",
-               volume.sizes());
   const at::Tensor v = volume.contiguous();
   at::Tensor xy = at::empty({B, C, X, Y}, v.options());
   at::Tensor xz = at::empty({B, C, X, Z}, v.options());
@@ -88,23 +85,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& v
 
 at::Tensor axis_pool_backward_cpu(const at::Tensor& grad_xy, const at::Tensor& grad_xz,
                                   const at::Tensor& grad_yz) {
-  check_dim(grad_xy, kOpBwd, "grad_xy", 4, "[B, C, X, Y]");
-  check_dim(grad_xz, kOpBwd, "grad_xz", 4, "[B, C, X, Z]");
-  check_dim(grad_yz, kOpBwd, "grad_yz", 4, "[B, C, Y, Z]");
-  check_float_dtype(grad_xy, kOpBwd, "grad_xy");
-  check_same_dtype(grad_xz, grad_xy, kOpBwd, "grad_xz", "grad_xy");
-  check_same_dtype(grad_yz, grad_xy, kOpBwd, "grad_yz", "grad_xy");
-  check_same_device(grad_xz, grad_xy, kOpBwd, "grad_xz", "grad_xy");
-  check_same_device(grad_yz, grad_xy, kOpBwd, "grad_yz", "grad_xy");
+  check_plane_grads(grad_xy, grad_xz, grad_yz, kOpBwd);
   const int64_t B = grad_xy.size(0), C = grad_xy.size(1), X = grad_xy.size(2),
                 Y = grad_xy.size(3), Z = grad_xz.size(3);
-  check_size(grad_xz, kOpBwd, "grad_xz", 0, B, "batch, as grad_xy");
-  check_size(grad_xz, kOpBwd, "grad_xz", 1, C, "channels, as grad_xy");
-  check_size(grad_xz, kOpBwd, "grad_xz", 2, X, "X, as grad_xy.shape[2]");
-  check_size(grad_yz, kOpBwd, "grad_yz", 0, B, "batch, as grad_xy");
-  check_size(grad_yz, kOpBwd, "grad_yz", 1, C, "channels, as grad_xy");
-  check_size(grad_yz, kOpBwd, "grad_yz", 2, Y, "Y, as grad_xy.shape[3]");
-  check_size(grad_yz, kOpBwd, "grad_yz", 3, Z, "Z, as grad_xz.shape[3]");
   const at::Tensor gxy = grad_xy.contiguous(), gxz = grad_xz.contiguous(),
                    gyz = grad_yz.contiguous();
   at::Tensor out = at::empty({B, C, X, Y, Z}, gxy.options());

@@ -60,35 +60,12 @@ T3FAST_SIMD_CLONES void add_row_sums(T* acc, const T* src, int64_t C, int64_t HW
   }
 }
 
-void check_prev_weight(const at::Tensor& prev, const at::Tensor& weight, const char* op) {
-  check_dim(prev, op, "prev", 4, "[B, C_in, H, W]");
-  check_dim(weight, op, "weight", 2, "[C, C_in]");
-  check_float_dtype(prev, op, "prev");
-  check_same_dtype(weight, prev, op, "weight", "prev");
-  check_same_device(weight, prev, op, "weight", "prev");
-  check_size(weight, op, "weight", 1, prev.size(1), "C_in, as prev.shape[1]");
-}
-
 at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
                           const at::Tensor& weight, const c10::optional<at::Tensor>& bias) {
   // The kernel uses ATen ops internally (also on worker threads, which do not inherit this
   // guard; they only see detached tensors); they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  check_dim(delta, kOp, "delta", 4, "[B, C, H, W]");
-  check_float_dtype(delta, kOp, "delta");
-  check_prev_weight(prev, weight, kOp);
-  check_same_dtype(prev, delta, kOp, "prev", "delta");
-  check_same_device(prev, delta, kOp, "prev", "delta");
-  check_size(prev, kOp, "prev", 0, delta.size(0), "batch, as delta");
-  check_size(prev, kOp, "prev", 2, delta.size(2), "H, as delta");
-  check_size(prev, kOp, "prev", 3, delta.size(3), "W, as delta");
-  check_size(weight, kOp, "weight", 0, delta.size(1), "C, as delta.shape[1]");
-  if (bias.has_value()) {
-    check_dim(*bias, kOp, "bias", 1, "[C]");
-    check_same_dtype(*bias, delta, kOp, "bias", "delta");
-    check_same_device(*bias, delta, kOp, "bias", "delta");
-    check_size(*bias, kOp, "bias", 0, delta.size(1), "C, as delta.shape[1]");
-  }
+  check_delta_fuse(delta, prev, weight, bias, kOp);
   const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
   const int64_t HW = delta.size(2) * delta.size(3);
   const at::Tensor d = delta.detach().contiguous().view({B, C, HW});
@@ -121,14 +98,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
     const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  check_prev_weight(prev, weight, kOpBwd);
-  check_dim(grad_out, kOpBwd, "grad_out", 4, "[B, C, H, W]");
-  check_same_dtype(grad_out, prev, kOpBwd, "grad_out", "prev");
-  check_same_device(grad_out, prev, kOpBwd, "grad_out", "prev");
-  check_size(grad_out, kOpBwd, "grad_out", 0, prev.size(0), "batch, as prev");
-  check_size(grad_out, kOpBwd, "grad_out", 1, weight.size(0), "C, as weight.shape[0]");
-  check_size(grad_out, kOpBwd, "grad_out", 2, prev.size(2), "H, as prev");
-  check_size(grad_out, kOpBwd, "grad_out", 3, prev.size(3), "W, as prev");
+  check_delta_fuse_backward(grad_out, prev, weight, kOpBwd);
   const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
   const int64_t HW = prev.size(2) * prev.size(3);
   const at::Tensor g = grad_out.detach().contiguous().view({B, C, HW});

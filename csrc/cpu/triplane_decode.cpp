@@ -515,10 +515,7 @@ triplane_decode_backward_cpu(const at::Tensor& grad_out, const at::Tensor& xy,
   const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOpBwd);
   auto shape = p.out_shape();
   shape.push_back(p.classes());
-  T3FAST_CHECK(grad_out.sizes() == at::IntArrayRef(shape), kOpBwd, "grad_out must have shape ",
-               at::IntArrayRef(shape), ", got ", grad_out.sizes());
-  check_same_dtype(grad_out, xy, kOpBwd, "grad_out", "xy");
-  check_same_device(grad_out, xy, kOpBwd, "grad_out", "xy");
+  check_grad_out(grad_out, xy, shape, kOpBwd);
   const at::Tensor go = grad_out.detach().contiguous().view({-1, p.classes()});
   const int64_t total = go.size(0);
   const int64_t chunks = (total + kChunk - 1) / kChunk;

@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 from torch.utils.data import Dataset
 
+from t3fast.data.classes import NUM_CLASSES
 from t3fast.data.synthetic import SyntheticFrames
 from t3fast.evaluation.reconstruction import evaluate_reconstruction
 from t3fast.models.autoencoder import TriplaneAutoencoder
 from t3fast.models.config import AutoencoderConfig, named_config
 from t3fast.training.config import config_to_dict
-from t3fast.training.losses import occupancy_loss
+from t3fast.training.losses import class_frequency_weights, occupancy_loss
 from t3fast.training.sampling import sample_query_points
 from t3fast.training.trainer import TrainConfig
 
@@ -39,6 +41,8 @@ class LossConfig:
     """Stage-1 loss: cross-entropy + lovasz_weight * Lovasz-softmax."""
 
     lovasz_weight: float = 1.0
+    class_weights: bool = False  # inverse-log-frequency CE weights, counted on the first frames
+    class_weight_frames: int = 40  # training frames counted for those weights
     full_grid: bool = False  # decode every voxel instead of sampled points
     num_occupied: int = 40_000  # all occupied voxels up to this many per frame
     num_near_free: int = 20_000  # free voxels next to a surface
@@ -100,6 +104,7 @@ class AutoencoderTask:
     def __init__(self, cfg: Stage1Config):
         self.cfg = copy.deepcopy(cfg)
         self._val = None
+        self._class_weights: Tensor | None = None
 
     def build_model(self) -> nn.Module:
         return TriplaneAutoencoder(self.cfg.model, decoder_backend=self.cfg.decoder_backend)
@@ -122,8 +127,19 @@ class AutoencoderTask:
                 labels, loss_cfg.num_occupied, loss_cfg.num_near_free, loss_cfg.num_far_free
             )
             logits = model(labels, points)
-        loss, parts = occupancy_loss(logits, targets, lovasz_weight=loss_cfg.lovasz_weight)
+        weights = self._weights(labels.device) if loss_cfg.class_weights else None
+        loss, parts = occupancy_loss(logits, targets, class_weights=weights, lovasz_weight=loss_cfg.lovasz_weight)
         return loss, {k: float(v) for k, v in parts.items()}
+
+    def _weights(self, device: torch.device) -> Tensor:
+        """Class-frequency weights from the first training frames (computed once; no flips,
+        so the random streams of training are untouched)."""
+        if self._class_weights is None:
+            frames = frames_dataset(dataclasses.replace(self.cfg.data, flip=False), "train")
+            n = min(len(frames), self.cfg.loss.class_weight_frames)
+            counts = sum(torch.bincount(frames[i].long().flatten(), minlength=256)[:NUM_CLASSES] for i in range(n))
+            self._class_weights = class_frequency_weights(counts)
+        return self._class_weights.to(device)
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         if self._val is None:

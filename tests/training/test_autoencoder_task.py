@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import json
 
+import torch
+
 from t3fast.cli import main
+from t3fast.data.classes import DRIVEABLE_SURFACE, FREE, PEDESTRIAN
+from t3fast.training.autoencoder import AutoencoderTask, preset
 from t3fast.training.checkpoint import load_checkpoint
 
 TINY_RUN = [
     "data.train_scenes=1",
-    "data.frames_per_scene=4",
+    "data.frames_per_scene=11",
     "data.val_scenes=1",
-    "data.val_stride=2",
+    "data.val_stride=4",
     "loss.num_occupied=2000",
     "loss.num_near_free=1000",
     "loss.num_far_free=500",
@@ -31,8 +35,8 @@ def test_train_resume_and_evaluate(tmp_path, capsys):
     # a longer run resumes from step 2 instead of starting over
     assert main(["train-ae", "--config", "small", "--resume", "train.steps=3", f"train.out_dir={out}", *TINY_RUN]) == 0
     assert load_checkpoint(out / "last.pt")["step"] == 3
-    steps = [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()]
-    assert steps.count(1) == steps.count(3) == 1  # train events of steps 1 and 3, once each
+    events = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [e["step"] for e in events if e["event"] == "train"] == [1, 2, 3]  # each step logged once
 
     capsys.readouterr()
     result = tmp_path / "eval.json"
@@ -40,4 +44,14 @@ def test_train_resume_and_evaluate(tmp_path, capsys):
     table = capsys.readouterr().out
     assert "| driveable_surface |" in table and "mIoU" in table
     summary = json.loads(result.read_text())
-    assert 0 <= summary["iou"] <= 100 and summary["latent_size"] == 105_600 and summary["frames"] == 4
+    assert 0 <= summary["iou"] <= 100 and summary["latent_size"] == 105_600 and summary["frames"] == 11
+
+
+def test_class_weights_favour_rare_classes():
+    cfg = preset("small")
+    cfg.data.train_scenes, cfg.data.frames_per_scene = 1, 11
+    cfg.loss.class_weights, cfg.loss.class_weight_frames = True, 2
+    weights = AutoencoderTask(cfg)._weights(torch.device("cpu"))
+    assert weights.shape == (18,)
+    assert weights.argmin() == FREE  # the most frequent class weighs least
+    assert weights[DRIVEABLE_SURFACE] < weights[PEDESTRIAN]

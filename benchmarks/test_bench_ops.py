@@ -13,24 +13,15 @@ IMPL_NAMES = ["fused", "reference"]
 
 @pytest.mark.parametrize("impl", IMPL_NAMES)
 @pytest.mark.parametrize("decoder", ["small", "paper"])
-def test_decode_grid_forward(benchmark, decoder, impl):
-    """Full 200x200x16 grid to logits, with the peak memory of one call."""
-    benchmark.group = f"decode grid fwd {decoder}"
+@pytest.mark.parametrize("query", ["grid", "argmax"])
+def test_decode_grid(benchmark, query, decoder, impl):
+    """Full 200x200x16 grid to logits ("grid") or to uint8 labels ("argmax": the argmax mode
+    versus the reference's logits.argmax()), with the peak memory of one call."""
+    benchmark.group = f"decode grid {'fwd' if query == 'grid' else 'labels'} {decoder}"
     args = make_decode_inputs(decoder)
-    benchmark.extra_info["peak_mb"] = peak_memory_mb(impl, {"decoder": decoder}, "grid")
+    benchmark.extra_info["peak_mb"] = peak_memory_mb(impl, {"decoder": decoder}, query)
     with torch.no_grad():
-        benchmark.pedantic(run_decode, args=(impl, args, "grid"), rounds=3, warmup_rounds=1)
-
-
-@pytest.mark.parametrize("impl", IMPL_NAMES)
-@pytest.mark.parametrize("decoder", ["small", "paper"])
-def test_decode_grid_labels(benchmark, decoder, impl):
-    """Full grid to uint8 labels: argmax mode versus the reference's logits.argmax()."""
-    benchmark.group = f"decode grid labels {decoder}"
-    args = make_decode_inputs(decoder)
-    benchmark.extra_info["peak_mb"] = peak_memory_mb(impl, {"decoder": decoder}, "argmax")
-    with torch.no_grad():
-        benchmark.pedantic(run_decode, args=(impl, args, "argmax"), rounds=3, warmup_rounds=1)
+        benchmark.pedantic(run_decode, args=(impl, args, query), rounds=3, warmup_rounds=1)
 
 
 @pytest.mark.parametrize("impl", IMPL_NAMES)

@@ -1,15 +1,19 @@
-"""Models of T3Former: the triplane autoencoder (encoder, decoder)."""
+"""Models of T3Former: the triplane autoencoder (encoder, decoder), the forecaster, the planner."""
 
 from t3fast.models.autoencoder import TriplaneAutoencoder
 from t3fast.models.config import PAPER, SMALL, AutoencoderConfig, named_config
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
+from t3fast.models.forecaster import DeltaTriplaneForecaster
+from t3fast.models.planner import MotionPlanner
 from t3fast.models.triplane import Triplane
 
 __all__ = [
     "PAPER",
     "SMALL",
     "AutoencoderConfig",
+    "DeltaTriplaneForecaster",
+    "MotionPlanner",
     "Triplane",
     "TriplaneAutoencoder",
     "TriplaneDecoder",

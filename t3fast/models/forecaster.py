@@ -1,0 +1,193 @@
+"""DeltaTriplaneForecaster (Phi_fut): predicts how each plane of the triplane changes.
+
+One :class:`PlanePredictor` per plane, with separate weights. A predictor encodes each of the
+``history`` past planes with a UNet-style encoder into V scales; at every scale a Transformer
+encoder turns the history tokens into a memory, and a Transformer decoder whose learnable
+future queries (one set per future step) cross-attend to it yields that scale's token change;
+UNet-style upsampling fuses the per-scale changes into the plane change Delta, and the next
+plane is ``delta_fuse(Delta, prev)`` (a 1x1 convolution of the previous plane plus Delta).
+
+Attention per scale: full spatio-temporal attention over all ``T * h * w`` tokens costs
+``(T h w)^2``; at the xy plane's finest scale (T = 5, 100 x 100) that is 2.5e9 scores per head,
+far too many. A scale therefore uses full attention when ``T * h * w <= max_tokens`` (the
+coarse scales, where objects' displacements span few cells and global context matters) and
+temporal attention otherwise (each location attends over its own history: tokens ``T``,
+cost ``h w T^2``; at fine scales motion is local, and the coarser scales supply the context).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from t3fast.models.blocks import group_norm
+from t3fast.models.triplane import Triplane
+from t3fast.ops import delta_fuse
+
+
+def _sinusoid_2d(h: int, w: int, dim: int, device: torch.device) -> Tensor:
+    """Fixed 2D sin/cos position code ``[h * w, dim]`` (dim divisible by 4)."""
+    quarter = dim // 4
+    freq = torch.exp(torch.arange(quarter, device=device) * (-math.log(10000.0) / max(quarter, 1)))
+    ys, xs = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")
+    ay, ax = ys.flatten()[:, None] * freq, xs.flatten()[:, None] * freq
+    return torch.cat([ay.sin(), ay.cos(), ax.sin(), ax.cos()], dim=1)
+
+
+class ScaleTransformer(nn.Module):
+    """History tokens of one scale -> that scale's token change for future step ``k``.
+
+    Input ``[B, T, D, h, w]``, output ``[B, D, h, w]``.
+    """
+
+    def __init__(self, dim: int, history: int, steps: int, heads: int, layers: int, full_attention: bool):
+        super().__init__()
+        self.full_attention = full_attention
+        self.time = nn.Parameter(torch.zeros(history, dim))  # which past frame a token comes from
+        self.queries = nn.Parameter(torch.zeros(steps, dim))  # learnable future query per step
+        nn.init.normal_(self.time, std=0.02)
+        nn.init.normal_(self.queries, std=0.02)
+        enc = nn.TransformerEncoderLayer(dim, heads, 2 * dim, dropout=0.0, batch_first=True, norm_first=True)
+        dec = nn.TransformerDecoderLayer(dim, heads, 2 * dim, dropout=0.0, batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(enc, layers, enable_nested_tensor=False)
+        self.decoder = nn.TransformerDecoder(dec, layers)
+
+    def forward(self, x: Tensor, step: int) -> Tensor:
+        b, t, d, h, w = x.shape
+        tokens = x.permute(0, 3, 4, 1, 2) + self.time[-t:]  # [B, h, w, T, D]
+        query = self.queries[step]
+        if self.full_attention:
+            space = _sinusoid_2d(h, w, d, x.device).view(h, w, 1, d)
+            memory = self.encoder((tokens + space).reshape(b, h * w * t, d))
+            q = (query + space.view(h * w, d)).expand(b, h * w, d)
+            return self.decoder(q, memory).transpose(1, 2).reshape(b, d, h, w)
+        memory = self.encoder(tokens.reshape(b * h * w, t, d))
+        out = self.decoder(query.expand(b * h * w, 1, d), memory)
+        return out.view(b, h, w, d).permute(0, 3, 1, 2)
+
+
+class PlanePredictor(nn.Module):
+    """Phi_fut of one plane: history ``[B, T, C, H, W]`` -> change Delta ``[B, C, H, W]``."""
+
+    def __init__(
+        self,
+        channels: int,
+        plane_size: tuple[int, int],
+        widths: Sequence[int],
+        history: int,
+        steps: int,
+        heads: int,
+        layers: int,
+        max_tokens: int,
+    ):
+        super().__init__()
+        self.down = nn.ModuleList()
+        self.scales = nn.ModuleList()
+        h, w = plane_size
+        prev = channels
+        for v, width in enumerate(widths):
+            stride = 1 if v == 0 else 2
+            self.down.append(
+                nn.Sequential(nn.Conv2d(prev, width, 3, stride=stride, padding=1), group_norm(width), nn.SiLU())
+            )
+            if v:
+                h, w = (h + 1) // 2, (w + 1) // 2
+            self.scales.append(ScaleTransformer(width, history, steps, heads, layers, history * h * w <= max_tokens))
+            prev = width
+        self.up = nn.ModuleList(
+            nn.Sequential(
+                nn.Conv2d(widths[v + 1] + widths[v], widths[v], 3, padding=1), group_norm(widths[v]), nn.SiLU()
+            )
+            for v in range(len(widths) - 1)
+        )
+        self.head = nn.Conv2d(widths[0], channels, 1)
+        nn.init.zeros_(self.head.weight)  # start from "no change"
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, history: Tensor, step: int) -> Tensor:
+        b, t = history.shape[:2]
+        x = history.flatten(0, 1)
+        changes = []
+        for down, scale in zip(self.down, self.scales):
+            x = down(x)
+            changes.append(scale(x.unflatten(0, (b, t)), step))
+        y = changes[-1]
+        for v in range(len(changes) - 2, -1, -1):
+            y = F.interpolate(y, size=changes[v].shape[-2:], mode="bilinear", align_corners=False)
+            y = self.up[v](torch.cat([y, changes[v]], dim=1))
+        return self.head(y)
+
+
+class DeltaTriplaneForecaster(nn.Module):
+    """Autoregressive forecaster of future triplanes.
+
+    Args:
+        channels: triplane channels C.
+        plane_shape: ``(X', Y', Z')``.
+        widths: channels of the V scales (V = len(widths); the papers use V = 5).
+        history: past frames the predictors see (the present included).
+        steps: future steps the learnable queries are made for.
+        predict_delta: ``next = delta_fuse(Delta, prev)``; False predicts the full next plane
+            (the papers' "w/o triplane changes" ablation).
+        bev: forecast only the xy plane (BEV-only latent).
+    """
+
+    def __init__(
+        self,
+        channels: int = 8,
+        plane_shape: tuple[int, int, int] = (100, 100, 16),
+        widths: Sequence[int] = (32, 48, 64, 96, 128),
+        history: int = 5,
+        steps: int = 6,
+        heads: int = 4,
+        layers: int = 1,
+        max_tokens: int = 1024,
+        predict_delta: bool = True,
+        bev: bool = False,
+    ):
+        super().__init__()
+        x, y, z = plane_shape
+        sizes = {"xy": (x, y)} if bev else {"xy": (x, y), "xz": (x, z), "yz": (y, z)}
+        self.history, self.steps, self.predict_delta = history, steps, predict_delta
+        self.predictors = nn.ModuleDict(
+            {
+                name: PlanePredictor(channels, size, widths, history, steps, heads, layers, max_tokens)
+                for name, size in sizes.items()
+            }
+        )
+        # the 1x1 fusion of delta_fuse, initialised to the identity: next = prev + Delta
+        self.fuse_weight = nn.ParameterDict({n: nn.Parameter(torch.eye(channels)) for n in sizes})
+        self.fuse_bias = nn.ParameterDict({n: nn.Parameter(torch.zeros(channels)) for n in sizes})
+
+    def step(self, history: Triplane, step: int) -> tuple[Triplane, Triplane]:
+        """One step: history planes ``[B, T, C, H, W]`` -> (next triplane, its change Delta)."""
+        nxt, deltas = [], []
+        for name, planes in zip(("xy", "xz", "yz"), history):
+            if name not in self.predictors:
+                nxt.append(None)
+                deltas.append(None)
+                continue
+            delta = self.predictors[name](planes[:, -self.history :], step)
+            prev = planes[:, -1]
+            out = delta_fuse(delta, prev, self.fuse_weight[name], self.fuse_bias[name]) if self.predict_delta else delta
+            nxt.append(out)
+            deltas.append(out - prev if not self.predict_delta else delta)
+        return Triplane(*nxt), Triplane(*deltas)
+
+    def forward(self, past: Triplane, steps: int | None = None) -> tuple[list[Triplane], list[Triplane]]:
+        """Past planes ``[B, T, C, H, W]`` -> ``steps`` future triplanes and their changes; each
+        prediction is appended to the history of the next step."""
+        history = past
+        futures, deltas = [], []
+        for k in range(steps or self.steps):
+            nxt, delta = self.step(history, min(k, self.steps - 1))
+            futures.append(nxt)
+            deltas.append(delta)
+            history = Triplane(
+                *(None if h is None else torch.cat([h, n.unsqueeze(1)], dim=1) for h, n in zip(history, nxt))
+            )
+        return futures, deltas

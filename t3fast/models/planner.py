@@ -1,0 +1,142 @@
+"""MotionPlanner (Phi_act): the ego's next displacements from triplanes and past actions.
+
+Per future step: ResNet-18-style encoders map the previous triplane, the change Delta and the
+next triplane into a shared latent (z_p, dz, z_f); two FC + sigmoid gates computed from dz
+select the motion-related parts of z_p and z_f; the gated features and dz are averaged, passed
+through an FC layer and added to a learnable future query, giving Q_a (d_act = 50). The past
+actions, projected to d_act, go through a Transformer encoder; a Transformer decoder with Q_a
+cross-attends to them and predicts the next displacement (dx, dy), which is appended to the
+actions for the next step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from t3fast.models.blocks import group_norm
+from t3fast.models.triplane import Triplane
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block (two 3x3 convs, projection shortcut when the shape changes)."""
+
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.Conv2d(cin, cout, 3, stride, 1, bias=False),
+            group_norm(cout),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(cout, cout, 3, 1, 1, bias=False),
+            group_norm(cout),
+        )
+        self.short = (
+            nn.Identity()
+            if stride == 1 and cin == cout
+            else nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), group_norm(cout))
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.relu(self.body(x) + self.short(x))
+
+
+class PlaneResNet(nn.Module):
+    """ResNet-18 layout (stem, 4 stages of 2 basic blocks, global pool): ``[B, C, H, W] -> [B, widths[-1]]``."""
+
+    def __init__(self, channels: int, widths: Sequence[int]):
+        super().__init__()
+        self.stem = nn.Sequential(nn.Conv2d(channels, widths[0], 3, 1, 1, bias=False), group_norm(widths[0]), nn.ReLU())
+        blocks, prev = [], widths[0]
+        for i, width in enumerate(widths):
+            blocks += [BasicBlock(prev, width, 1 if i == 0 else 2), BasicBlock(width, width, 1)]
+            prev = width
+        self.blocks = nn.Sequential(*blocks)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.blocks(self.stem(x)).mean(dim=(2, 3))
+
+
+class TriplaneResNet(nn.Module):
+    """A triplane -> one vector ``[B, d]``: one PlaneResNet shared by the planes (convolutions
+    do not care about the plane's size; sharing keeps three encoders at ResNet-18 size each),
+    pooled features concatenated in plane order, then FC."""
+
+    def __init__(self, channels: int, widths: Sequence[int], out_dim: int, planes: int):
+        super().__init__()
+        self.net = PlaneResNet(channels, widths)
+        self.fc = nn.Linear(planes * widths[-1], out_dim)
+
+    def forward(self, triplane: Triplane) -> Tensor:
+        return self.fc(torch.cat([self.net(p) for p in triplane if p is not None], dim=1))
+
+
+class MotionPlanner(nn.Module):
+    """Args:
+        channels: triplane channels C.
+        widths: stage widths of the ResNet-18-style encoders (ResNet-18: 64, 128, 256, 512).
+        d_act: token width of the action Transformer (the papers: 50).
+        steps: future steps (learnable future queries).
+        past: number of past actions.
+        heads, layers: of the action Transformer encoder and decoder.
+        bev: triplanes carry only the xy plane.
+    """
+
+    def __init__(
+        self,
+        channels: int = 8,
+        widths: Sequence[int] = (64, 128, 256, 512),
+        d_act: int = 50,
+        steps: int = 6,
+        past: int = 4,
+        heads: int = 5,
+        layers: int = 2,
+        bev: bool = False,
+    ):
+        super().__init__()
+        planes = 1 if bev else 3
+        self.enc_prev, self.enc_delta, self.enc_next = (
+            TriplaneResNet(channels, widths, d_act, planes) for _ in range(3)
+        )
+        self.gate_prev = nn.Sequential(nn.Linear(d_act, d_act), nn.Sigmoid())
+        self.gate_next = nn.Sequential(nn.Linear(d_act, d_act), nn.Sigmoid())
+        self.fc = nn.Linear(d_act, d_act)
+        self.future_queries = nn.Parameter(torch.randn(steps, d_act) * 0.02)
+        self.action_in = nn.Linear(2, d_act)
+        self.action_time = nn.Parameter(torch.randn(past + steps, d_act) * 0.02)
+        enc = nn.TransformerEncoderLayer(d_act, heads, 4 * d_act, dropout=0.0, batch_first=True, norm_first=True)
+        dec = nn.TransformerDecoderLayer(d_act, heads, 4 * d_act, dropout=0.0, batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(enc, layers, enable_nested_tensor=False)
+        self.decoder = nn.TransformerDecoder(dec, layers)
+        self.action_out = nn.Linear(d_act, 2)
+        self.steps = steps
+
+    def query(self, prev: Triplane, delta: Triplane, nxt: Triplane, step: int) -> Tensor:
+        """Q_a ``[B, d_act]`` of future step ``step`` from (previous, change, next) triplanes."""
+        z_p, dz, z_f = self.enc_prev(prev), self.enc_delta(delta), self.enc_next(nxt)
+        fused = (self.gate_prev(dz) * z_p + dz + self.gate_next(dz) * z_f) / 3
+        return self.fc(fused) + self.future_queries[step]
+
+    def next_action(self, q_a: Tensor, actions: Tensor) -> Tensor:
+        """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``."""
+        tokens = self.action_in(actions) + self.action_time[: actions.shape[1]]
+        return self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
+
+    def forward(
+        self, present: Triplane, futures: Sequence[Triplane], deltas: Sequence[Triplane], past_actions: Tensor
+    ) -> Tensor:
+        """Future displacements ``[B, S, 2]`` for S = len(futures) steps, autoregressively.
+
+        Args:
+            present: the present triplane (planes ``[B, C, H, W]``).
+            futures, deltas: per future step, the (predicted) triplane and its change.
+            past_actions: ``[B, T_p, 2]`` past displacements in the present frame.
+        """
+        actions, prev, out = past_actions, present, []
+        for k, (nxt, delta) in enumerate(zip(futures, deltas)):
+            a = self.next_action(self.query(prev, delta, nxt, min(k, self.steps - 1)), actions)
+            out.append(a)
+            actions = torch.cat([actions, a.unsqueeze(1)], dim=1)
+            prev = nxt
+        return torch.stack(out, dim=1)

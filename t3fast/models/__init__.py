@@ -7,12 +7,15 @@ from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
 from t3fast.models.triplane import Triplane
+from t3fast.models.world_model import Forecast, T3Former
 
 __all__ = [
     "PAPER",
     "SMALL",
+    "T3Former",
     "AutoencoderConfig",
     "DeltaTriplaneForecaster",
+    "Forecast",
     "MotionPlanner",
     "Triplane",
     "TriplaneAutoencoder",

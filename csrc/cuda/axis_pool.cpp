@@ -18,15 +18,6 @@ namespace {
 constexpr const char* kOp = "axis_pool";
 constexpr const char* kOpBwd = "axis_pool_backward";
 
-template <typename T>
-T* ptr(const at::Tensor& t) {
-  return static_cast<T*>(t.data_ptr());
-}
-
-void check_launch(cudaError_t err, const char* op) {
-  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
-}
-
 int device_attribute(cudaDeviceAttr attr, int device, const char* op) {
   int value = 0;
   check_launch(cudaDeviceGetAttribute(&value, attr, device), op);

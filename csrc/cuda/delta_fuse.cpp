@@ -18,15 +18,6 @@ namespace {
 constexpr const char* kOp = "delta_fuse";
 constexpr const char* kOpBwd = "delta_fuse_backward";
 
-template <typename T>
-T* ptr(const at::Tensor& t) {
-  return static_cast<T*>(t.data_ptr());
-}
-
-void check_launch(cudaError_t err, const char* op) {
-  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
-}
-
 // The kernels count channels with 32-bit integers.
 void check_channels(const at::Tensor& weight, const char* op) {
   T3FAST_CHECK(weight.size(0) <= INT_MAX && weight.size(1) <= INT_MAX, op,

@@ -5,6 +5,7 @@
 // that do not compile) and can be syntax-checked on machines without a CUDA torch.
 #pragma once
 
+#include <ATen/core/Tensor.h>
 #include <c10/util/BFloat16.h>
 #include <c10/util/Half.h>
 #include <cuda_bf16.h>
@@ -12,6 +13,8 @@
 #include <cuda_runtime.h>
 
 #include <type_traits>
+
+#include "checks.h"
 
 namespace t3fast {
 
@@ -24,5 +27,16 @@ template <typename S>
 using cuda_type_t = std::conditional_t<
     std::is_same_v<S, c10::Half>, __half,
     std::conditional_t<std::is_same_v<S, c10::BFloat16>, __nv_bfloat16, S>>;
+
+// A tensor's data as the kernel's element type.
+template <typename T>
+T* ptr(const at::Tensor& t) {
+  return static_cast<T*>(t.data_ptr());
+}
+
+// Turns a launcher's CUDA error into an error naming the op.
+inline void check_launch(cudaError_t err, const char* op) {
+  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
+}
 
 }  // namespace t3fast

@@ -31,15 +31,6 @@ constexpr const char* kOpBwd = "triplane_decode_backward";
 // Points per backward chunk: the recomputed activations take 64 MiB per 256-wide layer.
 constexpr int64_t kBackwardChunk = 65536;
 
-template <typename T>
-T* ptr(const at::Tensor& t) {
-  return static_cast<T*>(t.data_ptr());
-}
-
-void check_launch(cudaError_t err, const char* op) {
-  T3FAST_CHECK(err == cudaSuccess, op, "CUDA kernel launch failed: ", cudaGetErrorString(err));
-}
-
 // Validated arguments, contiguous, on the device of xy.
 struct Problem {
   at::Tensor xy, xz, yz;

@@ -8,6 +8,8 @@ import sys
 
 def build_parser() -> argparse.ArgumentParser:
     from t3fast.data.commands import add_data_commands
+    from t3fast.demo import add_demo_command
+    from t3fast.evaluation.commands import add_evaluation_commands
     from t3fast.training.commands import add_training_commands
 
     parser = argparse.ArgumentParser(prog="t3fast", description=__doc__)
@@ -16,8 +18,10 @@ def build_parser() -> argparse.ArgumentParser:
     info = sub.add_parser("info", help="show how the compiled operators were built")
     info.set_defaults(func=_info)
 
+    add_demo_command(sub)
     add_data_commands(sub)
     add_training_commands(sub)
+    add_evaluation_commands(sub)
     return parser
 
 

@@ -20,6 +20,8 @@ UNSEEN_DARKEN = 0.45
 EGO_COLOUR = (0, 255, 0)
 BOX_COLOUR = (255, 255, 255)
 PLAN_COLOUR = (0, 255, 0)
+TRUE_COLOUR = (0, 200, 255)
+TEXT_COLOUR = (0, 0, 0)
 
 
 def bev_colours(occ: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -53,13 +55,15 @@ def bev_image(
     mask: np.ndarray | None = None,
     trajectory: np.ndarray | None = None,
     scale: int = 2,
+    true_trajectory: np.ndarray | None = None,
 ) -> Image.Image:
     """Top-down picture of one frame.
 
     occ: label volume ``[200, 200, 16]``; boxes: ``[N, 7]`` in this frame's ego
     coordinates (outlined); mask: optional visibility ``[200, 200, 16]``;
-    trajectory: optional ego positions ``[K, 2]`` (drawn as a polyline from the ego).
-    The ego (nuScenes footprint) is drawn at the origin.
+    trajectory: optional ego positions ``[K, 2]`` (drawn as a green polyline from the ego);
+    true_trajectory: another one drawn in cyan underneath (e.g. the ground truth next to a
+    plan). The ego (nuScenes footprint) is drawn at the origin.
     """
     rgb = bev_colours(np.asarray(occ), None if mask is None else np.asarray(mask))
     # array [x, y] -> image [row, col] with x up and y left
@@ -71,9 +75,10 @@ def bev_image(
             draw.polygon([tuple(p) for p in corners], outline=BOX_COLOUR)
     ego = np.array([[0, 0, 0, C.EGO_LENGTH, C.EGO_WIDTH, 1.5, 0.0]])
     draw.polygon([tuple(p) for p in _to_pixels(box_corners(ego)[0], scale)], outline=EGO_COLOUR, fill=EGO_COLOUR)
-    if trajectory is not None and len(trajectory):
-        pts = _to_pixels(np.concatenate([np.zeros((1, 2)), np.asarray(trajectory)]), scale)
-        draw.line([tuple(p) for p in pts], fill=PLAN_COLOUR, width=max(scale, 1))
+    for path, colour in ((true_trajectory, TRUE_COLOUR), (trajectory, PLAN_COLOUR)):
+        if path is not None and len(path):
+            pts = _to_pixels(np.concatenate([np.zeros((1, 2)), np.asarray(path, dtype=np.float64)]), scale)
+            draw.line([tuple(p) for p in pts], fill=colour, width=max(scale, 1))
     return image
 
 
@@ -115,3 +120,82 @@ def save_sample_png(sample: DrivingSample, path: str | Path, frames: list[int] |
     path.parent.mkdir(parents=True, exist_ok=True)
     render_sample(sample, frames, scale, show_mask).save(path, optimize=True)
     return path
+
+
+def _captioned(tile: Image.Image, caption: str) -> Image.Image:
+    out = Image.new("RGB", (tile.width, tile.height + 14), (255, 255, 255))
+    out.paste(tile, (0, 14))
+    ImageDraw.Draw(out).text((2, 1), caption, fill=TEXT_COLOUR)
+    return out
+
+
+def _grid(rows: list[list[Image.Image]], gap: int = 4) -> Image.Image:
+    width = max(sum(t.width for t in row) + gap * (len(row) - 1) for row in rows)
+    height = sum(max(t.height for t in row) for row in rows) + gap * (len(rows) - 1)
+    canvas = Image.new("RGB", (width, height), (255, 255, 255))
+    y = 0
+    for row in rows:
+        x = 0
+        for tile in row:
+            canvas.paste(tile, (x, y))
+            x += tile.width + gap
+        y += max(t.height for t in row) + gap
+    return canvas
+
+
+def forecast_figure(
+    past: np.ndarray, predicted: np.ndarray, truth: np.ndarray, planned: np.ndarray, true_path: np.ndarray,
+    scale: int = 1, name: str = "T3Former",
+) -> Image.Image:
+    """Past / predicted / ground-truth BEV frames of one forecast, as three rows.
+
+    past: labels ``[5, X, Y, Z]`` (the present last); predicted, truth: ``[6, X, Y, Z]``;
+    planned, true_path: ego positions ``[6, 2]`` in the present frame, drawn on the present
+    frame (green: plan, cyan: ground truth). Frames are 0.5 s apart.
+    """
+    n_past = len(past)
+    row_past = [
+        _captioned(bev_image(past[t], scale=scale, trajectory=planned if t == n_past - 1 else None,
+                             true_trajectory=true_path if t == n_past - 1 else None),
+                   f"past {0.5 * (t - n_past + 1):+.1f} s" if t < n_past - 1 else "present + plans")
+        for t in range(n_past)
+    ]
+    row_pred = [_captioned(bev_image(f, scale=scale), f"{name} +{0.5 * (k + 1):.1f} s")
+                for k, f in enumerate(predicted)]
+    row_true = [_captioned(bev_image(f, scale=scale), f"truth +{0.5 * (k + 1):.1f} s") for k, f in enumerate(truth)]
+    return _grid([row_past, row_pred, row_true])
+
+
+def forecast_animation(
+    past: np.ndarray, predicted: np.ndarray, truth: np.ndarray, planned: np.ndarray, true_path: np.ndarray,
+    scale: int = 2, name: str = "T3Former",
+) -> list[Image.Image]:
+    """GIF frames of one forecast: the past frames, then predicted next to ground truth per
+    future step; the present frame shows the planned (green) and true (cyan) trajectories."""
+    frames = []
+    for t, occ in enumerate(past):
+        present = t == len(past) - 1
+        tile = bev_image(occ, scale=scale, trajectory=planned if present else None,
+                         true_trajectory=true_path if present else None)
+        label = "present" if present else f"past {0.5 * (t - len(past) + 1):+.1f} s"
+        frames.append(_grid([[_captioned(tile, label), _captioned(tile, label)]]))
+    for k, (p, g) in enumerate(zip(predicted, truth)):
+        when = f"+{0.5 * (k + 1):.1f} s"
+        frames.append(_grid([[_captioned(bev_image(p, scale=scale), f"{name} {when}"),
+                              _captioned(bev_image(g, scale=scale), f"truth {when}")]]))
+    return frames
+
+
+def save_forecast_pictures(
+    path: str | Path, past: np.ndarray, predicted: np.ndarray, truth: np.ndarray, planned: np.ndarray,
+    true_path: np.ndarray, name: str = "T3Former",
+) -> tuple[Path, Path]:
+    """Write ``path.png`` (:func:`forecast_figure`) and ``path.gif`` (:func:`forecast_animation`,
+    2 frames per second, looping); returns both paths."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    png, gif = path.with_suffix(".png"), path.with_suffix(".gif")
+    forecast_figure(past, predicted, truth, planned, true_path, name=name).save(png, optimize=True)
+    frames = forecast_animation(past, predicted, truth, planned, true_path, name=name)
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=500, loop=0, optimize=True)
+    return png, gif

@@ -68,8 +68,8 @@ def collisions(trajectory: Tensor, boxes: Tensor, valid: Tensor, labels: Tensor,
     hits = torch.zeros(len(trajectory), dtype=torch.bool, device=trajectory.device)
     for s in range(len(trajectory)):
         if agent[s].any():
-            occupied = cells_in_boxes(cells, boxes[s][agent[s]]).any(dim=0)
-            hits[s] = (ego[s] & occupied).any()
+            # only the ~50 cells under the ego can collide: test those against the agents
+            hits[s] = cells_in_boxes(cells[ego[s]], boxes[s][agent[s]]).any()
     return hits
 
 

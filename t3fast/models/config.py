@@ -77,3 +77,40 @@ def named_config(name: str) -> AutoencoderConfig:
                          f"{sorted(CONFIGS)} optionally followed by '-bev'")
     cfg = copy.deepcopy(CONFIGS[base])
     return bev_variant(cfg) if variant else cfg
+
+
+@dataclass
+class WorldModelConfig:
+    """Sizes of the forecaster and the planner (the autoencoder has its own config).
+
+    ``scales`` takes the first ``scales`` entries of ``forecaster_widths`` (1 = the
+    single-scale ablation); ``predict_delta=False`` predicts the full next plane (the
+    no-Delta ablation). A BEV-only latent follows from the autoencoder's config.
+    """
+
+    forecaster_widths: list[int] = field(default_factory=lambda: [32, 48, 64, 96, 128])
+    scales: int = 5
+    forecaster_heads: int = 4
+    forecaster_layers: int = 1
+    max_tokens: int = 1024  # full attention at scales with history * h * w <= this
+    history: int = 5
+    steps: int = 6
+    predict_delta: bool = True
+    planner_widths: list[int] = field(default_factory=lambda: [64, 128, 256, 512])  # ResNet-18
+    d_act: int = 50
+    planner_heads: int = 5
+    planner_layers: int = 2
+    past_actions: int = 4
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.scales <= len(self.forecaster_widths):
+            raise ValueError(f"scales must be in [1, {len(self.forecaster_widths)}], got {self.scales}")
+
+
+WORLD_MODELS = {
+    "paper": WorldModelConfig(),
+    # 2-core CPU budget: narrower scales and ResNet stages, one Transformer layer per stack.
+    "small": WorldModelConfig(
+        forecaster_widths=[16, 24, 32, 48, 64], planner_widths=[8, 16, 32, 64], planner_layers=1
+    ),
+}

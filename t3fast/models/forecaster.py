@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from t3fast.models.attention import TransformerStack
 from t3fast.models.blocks import group_norm
 from t3fast.models.triplane import Triplane
 from t3fast.ops import delta_fuse
@@ -51,10 +52,8 @@ class ScaleTransformer(nn.Module):
         self.queries = nn.Parameter(torch.zeros(steps, dim))  # learnable future query per step
         nn.init.normal_(self.time, std=0.02)
         nn.init.normal_(self.queries, std=0.02)
-        enc = nn.TransformerEncoderLayer(dim, heads, 2 * dim, dropout=0.0, batch_first=True, norm_first=True)
-        dec = nn.TransformerDecoderLayer(dim, heads, 2 * dim, dropout=0.0, batch_first=True, norm_first=True)
-        self.encoder = nn.TransformerEncoder(enc, layers, enable_nested_tensor=False)
-        self.decoder = nn.TransformerDecoder(dec, layers)
+        self.encoder = TransformerStack(dim, heads, layers)
+        self.decoder = TransformerStack(dim, heads, layers, cross=True)
 
     def forward(self, x: Tensor, step: int) -> Tensor:
         b, t, d, h, w = x.shape
@@ -67,7 +66,10 @@ class ScaleTransformer(nn.Module):
             return self.decoder(q, memory).transpose(1, 2).reshape(b, d, h, w)
         memory = self.encoder(tokens.reshape(b * h * w, t, d))
         out = self.decoder(query.expand(b * h * w, 1, d), memory)
-        return out.view(b, h, w, d).permute(0, 3, 1, 2)
+        # contiguous NCHW: this permuted (channels-last) layout otherwise propagates into the
+        # planner's convs, whose oneDNN weight gradient then aborted with heap corruption
+        # (torch 2.13 CPU; regression test in tests/models/test_world_model.py)
+        return out.view(b, h, w, d).permute(0, 3, 1, 2).contiguous()
 
 
 class PlanePredictor(nn.Module):
@@ -178,12 +180,15 @@ class DeltaTriplaneForecaster(nn.Module):
             deltas.append(out - prev if not self.predict_delta else delta)
         return Triplane(*nxt), Triplane(*deltas)
 
-    def forward(self, past: Triplane, steps: int | None = None) -> tuple[list[Triplane], list[Triplane]]:
+    def forward(
+        self, past: Triplane, steps: int | None = None, first_step: int = 0
+    ) -> tuple[list[Triplane], list[Triplane]]:
         """Past planes ``[B, T, C, H, W]`` -> ``steps`` future triplanes and their changes; each
-        prediction is appended to the history of the next step."""
+        prediction is appended to the history of the next step. ``first_step`` is the future
+        step the first prediction is (training starts rollouts from encoded later frames)."""
         history = past
         futures, deltas = [], []
-        for k in range(steps or self.steps):
+        for k in range(first_step, first_step + (steps or self.steps)):
             nxt, delta = self.step(history, min(k, self.steps - 1))
             futures.append(nxt)
             deltas.append(delta)

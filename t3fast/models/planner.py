@@ -124,17 +124,23 @@ class MotionPlanner(nn.Module):
         return self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
 
     def forward(
-        self, present: Triplane, futures: Sequence[Triplane], deltas: Sequence[Triplane], past_actions: Tensor
+        self,
+        present: Triplane,
+        futures: Sequence[Triplane],
+        deltas: Sequence[Triplane],
+        past_actions: Tensor,
+        first_step: int = 0,
     ) -> Tensor:
         """Future displacements ``[B, S, 2]`` for S = len(futures) steps, autoregressively.
 
         Args:
-            present: the present triplane (planes ``[B, C, H, W]``).
+            present: the triplane before the first future one (planes ``[B, C, H, W]``).
             futures, deltas: per future step, the (predicted) triplane and its change.
-            past_actions: ``[B, T_p, 2]`` past displacements in the present frame.
+            past_actions: ``[B, T_p + first_step, 2]`` displacements so far, in the present frame.
+            first_step: the future step of ``futures[0]``.
         """
         actions, prev, out = past_actions, present, []
-        for k, (nxt, delta) in enumerate(zip(futures, deltas)):
+        for k, (nxt, delta) in enumerate(zip(futures, deltas), start=first_step):
             a = self.next_action(self.query(prev, delta, nxt, min(k, self.steps - 1)), actions)
             out.append(a)
             actions = torch.cat([actions, a.unsqueeze(1)], dim=1)

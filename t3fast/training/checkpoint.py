@@ -40,6 +40,16 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device | None = 
     return torch.load(path, map_location=map_location, weights_only=True)
 
 
+def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16) -> int:
+    """Keep only what inference needs from a training checkpoint (model weights in ``dtype``,
+    config, step), e.g. to ship it; returns the file size in bytes. Loading casts back to the
+    model's dtype."""
+    state = load_checkpoint(src)
+    weights = {k: v.to(dtype) if v.is_floating_point() else v for k, v in state["model"].items()}
+    save_checkpoint({"model": weights, "config": state.get("config", {}), "step": state.get("step")}, dst)
+    return Path(dst).stat().st_size
+
+
 def _fsync_dir(directory: Path) -> None:
     """Make the rename itself durable; not every platform can open a directory."""
     try:

@@ -1,4 +1,4 @@
-"""``t3fast train-ae`` and ``t3fast eval-ae``."""
+"""``t3fast train-ae``, ``t3fast eval-ae`` and ``t3fast train-wm``."""
 
 from __future__ import annotations
 
@@ -16,6 +16,15 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     train.add_argument("--resume", action="store_true", help="continue from OUT_DIR/last.pt")
     train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=500 model.channels=16")
     train.set_defaults(func=_train_ae)
+
+    world = sub.add_parser("train-wm", help="train the world model: forecaster, planner, decoder (stage 2)")
+    world.add_argument("--config", default="small",
+                       help="preset (small, small-no-delta, small-single-scale, small-bev, paper) or a YAML/JSON file")
+    world.add_argument("--ae", help="stage-1 checkpoint (overrides autoencoder_ckpt)")
+    world.add_argument("--data", choices=["synthetic", "occ3d"], help="window source (overrides the config)")
+    world.add_argument("--resume", action="store_true", help="continue from OUT_DIR/last.pt")
+    world.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=100 loss.rollout_steps=6")
+    world.set_defaults(func=_train_wm)
 
     evaluate = sub.add_parser("eval-ae", help="reconstruction table of a stage-1 checkpoint")
     evaluate.add_argument("ckpt", type=Path, help="checkpoint (best.pt / last.pt)")
@@ -54,6 +63,37 @@ def _train_ae(args: argparse.Namespace) -> int:
         params = sum(p.numel() for p in trainer.module.parameters())
         enc = sum(p.numel() for p in trainer.module.encoder.parameters())
         print(f"autoencoder {args.config}: {params:,} parameters (encoder {enc:,}, decoder {params - enc:,})")
+    result = trainer.fit()
+    if is_main():
+        print(json.dumps(result, indent=2))
+    cleanup()
+    return 130 if trainer.interrupted else 0
+
+
+def _train_wm(args: argparse.Namespace) -> int:
+    from t3fast.training.config import config_to_dict, load_config, save_config
+    from t3fast.training.distributed import cleanup, is_main
+    from t3fast.training.trainer import Trainer
+    from t3fast.training.world_model import PRESETS, Stage2Config, WorldModelTask, preset
+
+    overrides = list(args.overrides)
+    if args.ae:
+        overrides.append(f"autoencoder_ckpt={args.ae}")
+    if args.data:
+        overrides.append(f"data.source={args.data}")
+    if args.resume:
+        overrides.append("train.resume=true")
+    base = preset(args.config) if args.config in PRESETS else load_config(Stage2Config, args.config)
+    cfg = load_config(Stage2Config, config_to_dict(base), overrides)
+    task = WorldModelTask(cfg)
+    trainer = Trainer(task, cfg.train)
+    if is_main():
+        Path(cfg.train.out_dir).mkdir(parents=True, exist_ok=True)
+        save_config(task.cfg, Path(cfg.train.out_dir) / "config.yaml")
+        model = trainer.module
+        counts = {name: sum(p.numel() for p in getattr(model, name).parameters())
+                  for name in ("encoder", "forecaster", "planner", "decoder")}
+        print(f"world model {args.config}: " + ", ".join(f"{k} {v:,}" for k, v in counts.items()) + " parameters")
     result = trainer.fit()
     if is_main():
         print(json.dumps(result, indent=2))

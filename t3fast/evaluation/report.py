@@ -1,0 +1,93 @@
+"""Scoring every method of the world-model table, and writing it as JSON and markdown."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from torch.utils.data import Dataset
+
+from t3fast.data.sample import collate_samples
+from t3fast.evaluation.world_model import (
+    constant_velocity_method,
+    copy_paste_method,
+    evaluate_forecasts,
+    measure_speed,
+    t3former_method,
+)
+from t3fast.models.world_model import T3Former
+
+BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velocity_method}
+
+
+def method_name(predict_delta: bool, scales: int, latent: str) -> str:
+    """``"t3former"`` for the full model, else the ablations it is (``no_delta``, ``single_scale``, ``bev``)."""
+    parts = [name for name, on in (("no_delta", not predict_delta), ("single_scale", scales == 1),
+                                   ("bev", latent == "bev")) if on]
+    return "_".join(parts) or "t3former"
+
+
+def evaluate_methods(
+    models: dict[str, T3Former],
+    dataset: Dataset,
+    indices: list[int],
+    device: torch.device | str = "cpu",
+    baselines: bool = True,
+    use_mask: bool = False,
+    progress: bool = True,
+) -> dict[str, dict]:
+    """The ``metrics.json`` mapping: each model (scores, speed, parameters) and the baselines
+    (speed and parameters null)."""
+    results: dict[str, dict] = {}
+    for name, model in models.items():
+        model.to(device).eval()
+        record = evaluate_forecasts(t3former_method(model), dataset, indices, device=device, use_mask=use_mask,
+                                    progress=progress, desc=name)
+        record.update(measure_speed(model, collate_samples([dataset[indices[0]]])))
+        results[name] = record
+    if baselines:
+        for name, method in BASELINES.items():
+            record = evaluate_forecasts(method, dataset, indices, device=device, use_mask=use_mask,
+                                        progress=progress, desc=name)
+            record.update(fps=None, peak_memory_mb=None, params=None)
+            results[name] = record
+    return results
+
+
+def _fmt(value, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def metrics_markdown(results: dict[str, dict], title: str = "") -> str:
+    """Two markdown tables: occupancy forecasting (mIoU, IoU per horizon) and planning/speed."""
+    horizons = ("0s", "1s", "2s", "3s", "avg")
+    lines = [f"{title}\n" if title else ""]
+    lines.append("| method | " + " | ".join(f"mIoU {h}" for h in horizons) + " | "
+                 + " | ".join(f"IoU {h}" for h in horizons) + " |")
+    lines.append("|---|" + "---:|" * (2 * len(horizons)))
+    for name, r in results.items():
+        cells = [_fmt(r["miou"][h]) for h in horizons] + [_fmt(r["iou"][h]) for h in horizons]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", "| method | L2 at 1s / 2s / 3s (m) | L2 avg | mean-L2 1s / 2s / 3s (m) | mean-L2 avg | "
+              "collision avg (%) | FPS (batch 1) | peak memory (MB) | parameters |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for name, r in results.items():
+        at = " / ".join(_fmt(r["l2_at"][h]) for h in ("1s", "2s", "3s"))
+        mean = " / ".join(_fmt(r["l2_mean"][h]) for h in ("1s", "2s", "3s"))
+        coll = None if r["collision"]["avg"] is None else 100 * r["collision"]["avg"]
+        params = "-" if r["params"] is None else f"{r['params']:,}"
+        lines.append(f"| {name} | {at} | {_fmt(r['l2_at']['avg'])} | {mean} | {_fmt(r['l2_mean']['avg'])} | "
+                     f"{_fmt(coll)} | {_fmt(r['fps'], 1)} | {_fmt(r['peak_memory_mb'], 0)} | {params} |")
+    lines += ["", "mIoU/IoU in percent (0s: reconstruction of the present frame; avg: mean of 1-3 s). "
+              "L2 at: distance at the horizon; mean-L2: mean over the steps up to it."]
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def write_report(results: dict[str, dict], out_dir: str | Path, title: str = "") -> tuple[Path, Path]:
+    """``out_dir/metrics.json`` and ``out_dir/metrics.md``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(results, indent=2) + "\n")
+    (out / "metrics.md").write_text(metrics_markdown(results, title))
+    return out / "metrics.json", out / "metrics.md"

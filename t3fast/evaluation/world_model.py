@@ -1,0 +1,189 @@
+"""The world-model evaluation protocol: occupancy forecasting and planning, per method.
+
+A *method* maps a :class:`~t3fast.data.sample.DrivingBatch` to a :class:`MethodOutput`
+(future labels and/or planned displacements, and for learned models the reconstruction of
+the present frame, the "0 s" column). :func:`evaluate_forecasts` scores a method on a set of
+windows and returns the ``metrics.json`` record of that method (percent for occupancy, metres
+for L2, a rate for collisions; ``None`` where a metric does not apply)::
+
+    {"miou": {"0s", "1s", "2s", "3s", "avg"}, "iou": {...},
+     "l2_at": {"1s", "2s", "3s", "avg"}, "l2_mean": {...}, "collision": {...}}
+
+:func:`measure_speed` adds ``fps`` (the full forecasting step at batch 1: forecaster, planner,
+decoding of the 6 future frames to labels, after warm-up), ``peak_memory_mb`` and ``params``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingBatch, collate_samples
+from t3fast.evaluation.baselines import constant_velocity, copy_paste
+from t3fast.evaluation.metrics import OccupancyMetrics
+from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
+from t3fast.models.world_model import T3Former
+
+OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
+PLAN_KEYS = ("1s", "2s", "3s", "avg")
+
+
+@dataclass
+class MethodOutput:
+    """What a method predicts for a batch of ``B`` windows (None: not predicted).
+
+    Attributes:
+        labels: uint8 ``[B, 6, X, Y, Z]`` future occupancy.
+        actions: ``[B, 6, 2]`` planned displacements (present frame).
+        reconstruction: uint8 ``[B, X, Y, Z]`` the present frame through the latent.
+    """
+
+    labels: Tensor | None = None
+    actions: Tensor | None = None
+    reconstruction: Tensor | None = None
+
+
+Method = Callable[[DrivingBatch], MethodOutput]
+
+
+def t3former_method(model: T3Former) -> Method:
+    """The world model: encode the 5 past frames, forecast 6 steps, plan."""
+
+    def run(batch: DrivingBatch) -> MethodOutput:
+        past = model.encode_sequence(batch.past_occ)
+        out = model.forecast_from_triplanes(past, batch.past_actions, NUM_FUTURE)
+        present = past.map(lambda p: p[:, -1])
+        return MethodOutput(out.labels, out.actions, model.decoder.predict(present))
+
+    return run
+
+
+def copy_paste_method(batch: DrivingBatch) -> MethodOutput:
+    """Copy&Paste: the present frame repeated; no plan."""
+    return MethodOutput(labels=copy_paste(batch.past_occ, NUM_FUTURE))
+
+
+def constant_velocity_method(batch: DrivingBatch) -> MethodOutput:
+    """Constant-velocity ego motion; no occupancy."""
+    return MethodOutput(actions=constant_velocity(batch.past_actions, NUM_FUTURE))
+
+
+def _summaries(occ: dict[str, OccupancyMetrics] | None, plan: PlanningMetrics | None) -> dict:
+    record: dict = {}
+    for key in ("miou", "iou"):
+        if occ is None:
+            record[key] = dict.fromkeys(OCC_KEYS)
+            continue
+        values = {h: (None if m is None else m.summary()[key]) for h, m in occ.items()}
+        values["avg"] = sum(values[h] for h in HORIZONS) / len(HORIZONS)
+        record[key] = {k: values[k] for k in OCC_KEYS}
+    planning = plan.summary() if plan is not None else {}
+    for key in ("l2_at", "l2_mean", "collision"):
+        record[key] = planning.get(key, dict.fromkeys(PLAN_KEYS))
+    return record
+
+
+@torch.no_grad()
+def evaluate_forecasts(
+    method: Method,
+    dataset: Dataset,
+    indices: list[int] | None = None,
+    batch_size: int = 1,
+    device: torch.device | str = "cpu",
+    use_mask: bool = False,
+    progress: bool = True,
+    desc: str = "evaluate",
+) -> dict:
+    """Score ``method`` on the windows ``indices`` of ``dataset`` (``DrivingSample`` items).
+
+    Occupancy: one confusion matrix per horizon (1 s, 2 s, 3 s = future frames 2, 4, 6) over
+    the whole set, "0 s" from the method's reconstruction of the present frame, "avg" the
+    mean of 1-3 s. ``use_mask`` scores only voxels in Occ3D's ``mask_camera``.
+    """
+    indices = list(range(len(dataset))) if indices is None else indices
+    occ: dict[str, OccupancyMetrics | None] | None = None
+    plan: PlanningMetrics | None = None
+    batches = [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
+    for chunk in tqdm(batches, desc=desc, unit="batch", disable=not progress, leave=False):
+        batch = collate_samples([dataset[i] for i in chunk]).to(device)
+        out = method(batch)
+        mask = batch.mask_camera if use_mask else None
+        if out.labels is not None:
+            if occ is None:
+                occ = {"0s": None, **{h: OccupancyMetrics(device=device) for h in HORIZONS}}
+            for h, step in HORIZONS.items():
+                frame = PRESENT + step
+                occ[h].update(out.labels[:, step - 1], batch.occ[:, frame], None if mask is None else mask[:, frame])
+            if out.reconstruction is not None:
+                occ["0s"] = occ["0s"] or OccupancyMetrics(device=device)
+                occ["0s"].update(out.reconstruction, batch.occ[:, PRESENT],
+                                 None if mask is None else mask[:, PRESENT])
+        if out.actions is not None:
+            plan = plan or PlanningMetrics()
+            future = slice(PRESENT + 1, None)
+            plan.update(out.actions.cumsum(1), batch.future_actions.cumsum(1), batch.boxes[:, future],
+                        batch.box_valid[:, future], batch.box_labels)
+    return _summaries(occ, plan)
+
+
+def _peak_rss_mb() -> float | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+@torch.no_grad()
+def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 2, iters: int = 5) -> dict:
+    """``{"fps", "peak_memory_mb", "params"}`` of the forecasting step at batch 1.
+
+    The step is forecaster + planner + decoding of the 6 future frames to labels, from the
+    encoded past frames (a streaming user encodes each new frame once). Peak memory: on CUDA
+    the allocator's peak during the step (tensors only, weights included); on CPU the peak
+    resident set of the whole process during the step (Linux; weights, libraries and
+    interpreter included), else None.
+    """
+    model.eval()
+    device = next(model.parameters()).device
+    batch = sample_batch.to(device)
+    past = model.encode_sequence(batch.past_occ[:1])
+    actions = batch.past_actions[:1]
+
+    def step() -> None:
+        model.forecast_from_triplanes(past, actions, NUM_FUTURE)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    for _ in range(warmup):
+        step()
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    resettable = device.type == "cpu" and _reset_peak_rss()
+    start = time.perf_counter()
+    for _ in range(iters):
+        step()
+    elapsed = (time.perf_counter() - start) / iters
+    if device.type == "cuda":
+        peak = torch.cuda.max_memory_allocated(device) / 2**20
+    else:
+        peak = _peak_rss_mb() if resettable else None
+    return {"fps": 1.0 / elapsed, "peak_memory_mb": peak, "params": sum(p.numel() for p in model.parameters())}

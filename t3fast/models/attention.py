@@ -1,0 +1,79 @@
+"""Pre-norm Transformer encoder/decoder layers sized for many short token sequences.
+
+The forecaster's fine scales run temporal attention: tens of thousands of sequences of at
+most ``history`` (5) tokens. ``nn.MultiheadAttention`` spends most of that time in
+layout copies and in the CPU flash-attention kernel, which is built for long sequences;
+for short ones an explicit ``einsum`` + softmax is several times faster forward and
+backward. Long sequences (the coarse scales' full attention) still go through
+``F.scaled_dot_product_attention``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+SHORT = 16  # key lengths up to this use the explicit einsum path
+
+
+class Attention(nn.Module):
+    """Multi-head attention ``[N, Tq, D] x [N, Tk, D] -> [N, Tq, D]``."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"dim {dim} is not divisible by heads {heads}")
+        self.heads = heads
+        self.q, self.k, self.v, self.out = (nn.Linear(dim, dim) for _ in range(4))
+
+    def forward(self, x: Tensor, context: Tensor) -> Tensor:
+        n, tq, d = x.shape
+        tk, h = context.shape[1], self.heads
+        q = self.q(x).view(n, tq, h, d // h)
+        k = self.k(context).view(n, tk, h, d // h)
+        v = self.v(context).view(n, tk, h, d // h)
+        if tk <= SHORT:
+            scores = torch.einsum("nqhd,nkhd->nhqk", q, k) * (1.0 / math.sqrt(d // h))
+            out = torch.einsum("nhqk,nkhd->nqhd", scores.softmax(dim=-1), v)
+        else:
+            out = F.scaled_dot_product_attention(q.transpose(1, 2), k.transpose(1, 2), v.transpose(1, 2))
+            out = out.transpose(1, 2)
+        return self.out(out.reshape(n, tq, d))
+
+
+class TransformerLayer(nn.Module):
+    """Pre-norm layer: self-attention, cross-attention to ``memory`` (decoder layers only),
+    MLP with ``mlp_ratio * dim`` hidden units; residual around each."""
+
+    def __init__(self, dim: int, heads: int, mlp_ratio: int = 2, cross: bool = False):
+        super().__init__()
+        self.norm_self = nn.LayerNorm(dim)
+        self.attn_self = Attention(dim, heads)
+        self.norm_cross = nn.LayerNorm(dim) if cross else None
+        self.attn_cross = Attention(dim, heads) if cross else None
+        self.norm_mlp = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(nn.Linear(dim, mlp_ratio * dim), nn.GELU(), nn.Linear(mlp_ratio * dim, dim))
+
+    def forward(self, x: Tensor, memory: Tensor | None = None) -> Tensor:
+        y = self.norm_self(x)
+        x = x + self.attn_self(y, y)
+        if self.attn_cross is not None:
+            x = x + self.attn_cross(self.norm_cross(x), memory)
+        return x + self.mlp(self.norm_mlp(x))
+
+
+class TransformerStack(nn.Module):
+    """``layers`` encoder layers (``cross=False``) or decoder layers (``cross=True``), then a norm."""
+
+    def __init__(self, dim: int, heads: int, layers: int, mlp_ratio: int = 2, cross: bool = False):
+        super().__init__()
+        self.layers = nn.ModuleList(TransformerLayer(dim, heads, mlp_ratio, cross) for _ in range(layers))
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, x: Tensor, memory: Tensor | None = None) -> Tensor:
+        for layer in self.layers:
+            x = layer(x, memory)
+        return self.norm(x)

@@ -1,0 +1,284 @@
+"""Stage 2: training the forecaster and planner, fine-tuning the decoder (a
+:class:`~t3fast.training.trainer.Task`).
+
+The encoder of a stage-1 checkpoint is frozen. Each training sample is an 11-frame window;
+a rollout of ``loss.rollout_steps`` autoregressive steps starts at a random future step
+``k``: the history is the encoded frames ``k .. k + 4`` (ground truth) and later steps see the
+model's own predictions, as at inference. The loss of each predicted step is
+
+    L1(next, enc(frame)) + gamma * MSE(next, enc(frame))        # triplane
+    + xi * (CE + Lovasz)(decoder(next) at sampled points)      # occupancy
+    + action_weight * |a - a_true|^2                            # planning
+
+averaged over the rollout's steps. ``rollout_steps = 6`` trains the full 3 s rollout every
+step; the CPU presets use shorter rollouts from random starts (the same per-step queries
+and targets, a fraction of the cost).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+from torch.utils.data import Dataset
+
+from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.models.config import WORLD_MODELS, AutoencoderConfig, WorldModelConfig
+from t3fast.models.triplane import Triplane
+from t3fast.models.world_model import T3Former
+from t3fast.training.checkpoint import load_checkpoint
+from t3fast.training.config import config_to_dict, load_config
+from t3fast.training.losses import occupancy_loss
+from t3fast.training.sampling import sample_query_points
+from t3fast.training.trainer import TrainConfig
+from t3fast.training.triplane_cache import cached_scene_triplanes
+
+
+@dataclass
+class SequencesConfig:
+    """Where the 11-frame windows come from."""
+
+    source: str = "synthetic"  # "synthetic" or "occ3d"
+    train_scenes: int = 200
+    val_scenes: int = 2  # scored during training
+    val_windows: int = 8  # windows of those scored
+    frames_per_scene: int = 40
+    stride: int = 1  # frames between consecutive training windows
+    cache_dir: str = "runs/cache"  # encoded triplanes of the synthetic training scenes
+    occ3d_root: str = ""
+    occ3d_train_info: str = ""
+    occ3d_val_info: str = ""
+
+
+@dataclass
+class WorldLossConfig:
+    """Stage-2 loss weights and the rollout trained per step."""
+
+    gamma: float = 1.0  # weight of the L2 triplane term next to L1
+    xi: float = 0.1  # weight of the occupancy loss on decoded predictions
+    action_weight: float = 1.0
+    lovasz_weight: float = 1.0
+    rollout_steps: int = 6  # autoregressive steps per sample (1..6), from a random start
+    num_occupied: int = 10_000  # query points per predicted frame
+    num_near_free: int = 5_000
+    num_far_free: int = 2_000
+
+
+@dataclass
+class Stage2Config:
+    """Everything ``t3fast train-wm`` needs. ``autoencoder`` is filled from the stage-1
+    checkpoint, so a stage-2 checkpoint describes its whole model."""
+
+    autoencoder_ckpt: str = "runs/ae-small/best.pt"
+    autoencoder: AutoencoderConfig | None = None
+    model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    data: SequencesConfig = field(default_factory=SequencesConfig)
+    loss: WorldLossConfig = field(default_factory=WorldLossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+def _small(out: str, ae: str = "small", **model) -> Stage2Config:
+    return Stage2Config(
+        autoencoder_ckpt=f"runs/ae-{ae}/best.pt",
+        model=replace(copy.deepcopy(WORLD_MODELS["small"]), **model),
+        data=SequencesConfig(train_scenes=30),
+        loss=WorldLossConfig(rollout_steps=2),
+        train=TrainConfig(steps=500, batch_size=2, lr=1e-3, warmup_steps=50, log_every=25, eval_every=250,
+                          ckpt_every=100, out_dir=f"runs/{out}"),
+    )
+
+
+# small*: the 2-core CPU budget (same steps, data and sizes for the ablations);
+# paper: the papers' sizes, full 6-step rollouts, for GPUs.
+PRESETS = {
+    "small": lambda: _small("wm-small"),
+    "small-no-delta": lambda: _small("wm-small-no-delta", predict_delta=False),
+    "small-single-scale": lambda: _small("wm-small-single-scale", scales=1),
+    "small-bev": lambda: _small("wm-small-bev", ae="small-bev"),
+    "paper": lambda: Stage2Config(
+        autoencoder_ckpt="runs/ae-paper/best.pt",
+        train=TrainConfig(steps=20_000, batch_size=4, lr=5e-4, warmup_steps=1000, log_every=100, eval_every=2000,
+                          ckpt_every=1000, out_dir="runs/wm-paper"),
+    ),
+}
+
+
+def preset(name: str) -> Stage2Config:
+    """A named stage-2 configuration (see ``PRESETS``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown stage-2 config {name!r}; expected one of {sorted(PRESETS)}")
+    return PRESETS[name]()
+
+
+@dataclass
+class SequenceBatch:
+    """Training windows: ``occ`` uint8 ``[B, 11, X, Y, Z]``; ``planes`` the frames' encoded
+    triplanes ``[B, 11, C, H, W]`` (None: encode ``occ`` in the step); actions ``[B, 4, 2]``
+    and ``[B, 6, 2]`` (present frame)."""
+
+    occ: Tensor
+    planes: Triplane | None
+    past_actions: Tensor
+    future_actions: Tensor
+
+    def to(self, device: torch.device | str) -> SequenceBatch:
+        planes = None if self.planes is None else self.planes.map(lambda p: p.to(device))
+        moved = {f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "planes"}
+        return SequenceBatch(planes=planes, **moved)
+
+
+class EncodedWindows(Dataset):
+    """Synthetic windows with their frames' triplanes from a per-scene cache."""
+
+    def __init__(self, windows: SyntheticDriving, planes: list[Triplane]):
+        self.windows, self.planes = windows, planes
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, index: int) -> tuple[DrivingSample, Triplane]:
+        sample = self.windows[index]
+        scene = index // len(self.windows.starts)
+        window = slice(sample.start, sample.start + sample.occ.shape[0])
+        return sample, self.planes[scene].map(lambda p: p[window].float())
+
+
+def collate_windows(items: list) -> SequenceBatch:
+    """Items are ``DrivingSample``s or ``(DrivingSample, Triplane)`` pairs."""
+    pairs = [item if isinstance(item, tuple) else (item, None) for item in items]
+    samples = [s for s, _ in pairs]
+    planes = None
+    if pairs[0][1] is not None:
+        per_plane = zip(*(t for _, t in pairs))
+        planes = Triplane(*(None if first is None else torch.stack(ps) for first, ps in zip(pairs[0][1], per_plane)))
+    return SequenceBatch(
+        occ=torch.stack([s.occ for s in samples]),
+        planes=planes,
+        past_actions=torch.stack([s.past_actions for s in samples]),
+        future_actions=torch.stack([s.future_actions for s in samples]),
+    )
+
+
+def load_autoencoder_into(model: T3Former, ckpt: str) -> AutoencoderConfig:
+    """Copy a stage-1 checkpoint's encoder and decoder weights into ``model``; returns its config."""
+    state = load_checkpoint(ckpt)
+    weights = state["model"]
+    model.encoder.load_state_dict({k[len("encoder."):]: v for k, v in weights.items() if k.startswith("encoder.")})
+    model.decoder.load_state_dict({k[len("decoder."):]: v for k, v in weights.items() if k.startswith("decoder.")})
+    return load_config(AutoencoderConfig, state["config"]["task"]["model"])
+
+
+def build_world_model(cfg: Stage2Config) -> T3Former:
+    """The untrained world model of ``cfg`` (``cfg.autoencoder`` must be set)."""
+    if cfg.autoencoder is None:
+        raise ValueError("Stage2Config.autoencoder is unset: resolve it from the stage-1 checkpoint first")
+    return T3Former.from_config(cfg.autoencoder, cfg.model)
+
+
+def rollout_loss(
+    model: nn.Module, planes: Triplane, occ: Tensor, past_actions: Tensor, future_actions: Tensor, first: int,
+    steps: int, loss: WorldLossConfig,
+) -> tuple[Tensor, dict[str, float]]:
+    """Stage-2 loss of one rollout of ``steps`` steps starting at future step ``first``.
+
+    Args:
+        planes: encoded frames ``[B, 11, C, H, W]``; occ: labels ``[B, 11, X, Y, Z]``.
+    """
+    history = planes.map(lambda p: p[:, first : first + PRESENT + 1])
+    actions = torch.cat([past_actions, future_actions[:, :first]], dim=1)
+    targets = [PRESENT + 1 + first + j for j in range(steps)]
+    slots = (loss.num_occupied, loss.num_near_free, loss.num_far_free)
+    queries = [sample_query_points(occ[:, t], *slots) for t in targets]
+    futures, predicted, logits = model(history, actions, steps, first, [q[0] for q in queries])
+    tri = occ_loss = torch.zeros((), device=occ.device)
+    for j, t in enumerate(targets):
+        for p, target in zip(futures[j], planes):
+            if p is not None:
+                tri = tri + F.l1_loss(p, target[:, t]) + loss.gamma * F.mse_loss(p, target[:, t])
+        occ_loss = occ_loss + occupancy_loss(logits[j], queries[j][1], lovasz_weight=loss.lovasz_weight)[0]
+    act = (predicted - future_actions[:, first : first + steps]).square().sum(-1).mean()
+    tri, occ_loss = tri / steps, occ_loss / steps
+    total = tri + loss.xi * occ_loss + loss.action_weight * act
+    parts = {"triplane": tri, "occupancy": occ_loss, "action": act}
+    return total, {k: float(v.detach()) for k, v in parts.items()}
+
+
+class WorldModelTask:
+    """Trains :class:`T3Former` (stage 2); scores the Avg mIoU of full rollouts on val windows."""
+
+    def __init__(self, cfg: Stage2Config):
+        self.cfg = copy.deepcopy(cfg)
+        if self.cfg.autoencoder is None:
+            self.cfg.autoencoder = load_config(
+                AutoencoderConfig, load_checkpoint(self.cfg.autoencoder_ckpt)["config"]["task"]["model"]
+            )
+        self._val = None
+        self._encoder = None
+
+    def build_model(self) -> nn.Module:
+        model = build_world_model(self.cfg)
+        load_autoencoder_into(model, self.cfg.autoencoder_ckpt)
+        self._encoder = model.encoder
+        return model
+
+    def train_dataset(self) -> Dataset:
+        data = self.cfg.data
+        if data.source == "synthetic":
+            windows = SyntheticDriving("train", data.train_scenes, data.frames_per_scene, stride=data.stride)
+            if self._encoder is None:
+                raise RuntimeError("build_model() must run before train_dataset()")
+            planes = cached_scene_triplanes(self._encoder, windows.scenes, data.cache_dir)
+            return EncodedWindows(windows, planes)
+        if data.source == "occ3d":
+            from t3fast.data.occ3d import Occ3DNuScenes
+
+            return Occ3DNuScenes(data.occ3d_root, data.occ3d_train_info, stride=data.stride)
+        raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
+
+    def collate(self, batch_list: list) -> SequenceBatch:
+        return collate_windows(batch_list)
+
+    def samples_in(self, batch: SequenceBatch) -> int:
+        return batch.occ.shape[0]
+
+    def training_step(self, model: nn.Module, batch: SequenceBatch) -> tuple[Tensor, dict[str, float]]:
+        core = model.module if hasattr(model, "module") else model
+        planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
+        steps = self.cfg.loss.rollout_steps
+        if not 1 <= steps <= NUM_FUTURE:
+            raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")
+        first = int(torch.randint(0, NUM_FUTURE - steps + 1, ()))
+        return rollout_loss(model, planes, batch.occ, batch.past_actions, batch.future_actions, first, steps,
+                            self.cfg.loss)
+
+    def evaluate(self, model: nn.Module) -> dict[str, float]:
+        from t3fast.evaluation.world_model import evaluate_forecasts, t3former_method
+
+        data = self.cfg.data
+        if self._val is None:
+            self._val = SyntheticDriving("val", data.val_scenes, data.frames_per_scene, stride=4)
+        indices = list(range(min(len(self._val), data.val_windows)))
+        device = next(model.parameters()).device
+        result = evaluate_forecasts(t3former_method(model), self._val, indices, device=device, progress=False)
+        return {"score": result["miou"]["avg"], "miou_avg": result["miou"]["avg"], "iou_avg": result["iou"]["avg"],
+                "l2_mean_avg": result["l2_mean"]["avg"]}
+
+    def config_dict(self) -> dict:
+        return config_to_dict(self.cfg)
+
+
+def load_world_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[T3Former, Stage2Config]:
+    """A trained world model from a stage-2 checkpoint (``last.pt``/``best.pt`` or an exported
+    weights file), in eval mode on ``device``."""
+    state = load_checkpoint(path)
+    if "config" not in state or "task" not in state["config"]:
+        raise ValueError(f"{path}: not a t3fast stage-2 checkpoint (no config)")
+    cfg = load_config(Stage2Config, state["config"]["task"])
+    model = build_world_model(cfg)
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), cfg

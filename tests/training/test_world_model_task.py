@@ -1,0 +1,156 @@
+"""Stage 2: the loss learns, and train-wm -> eval -> forecast -> demo work end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from t3fast.cli import main
+from t3fast.data.export import export_synthetic
+from t3fast.models.triplane import Triplane
+from t3fast.training.checkpoint import export_weights, load_checkpoint
+from t3fast.training.world_model import (
+    SequenceBatch,
+    WorldLossConfig,
+    WorldModelTask,
+    load_world_model,
+    preset,
+    rollout_loss,
+)
+
+from ..models.test_world_model import tiny_world_model
+
+TINY_AE = ["data.train_scenes=1", "data.frames_per_scene=11", "data.val_scenes=1", "data.val_stride=11",
+           "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100", "train.eval_every=0"]
+TINY_WM = ["model.forecaster_widths=[8,8,8]", "model.scales=3", "model.max_tokens=64", "model.planner_widths=[8,8,8,8]",
+           "model.d_act=20", "data.train_scenes=1", "data.frames_per_scene=12", "data.val_scenes=1",
+           "data.val_windows=1", "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100",
+           "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+
+
+def shifting_sequence(frames: int = 11, grid=(16, 12, 4)) -> torch.Tensor:
+    """A box moving one cell along x per frame over a floor: ``[1, frames, X, Y, Z]``."""
+    occ = torch.full((frames, *grid), 17, dtype=torch.uint8)
+    occ[..., 0] = 11
+    for t in range(frames):
+        occ[t, t % (grid[0] - 3) : t % (grid[0] - 3) + 3, 4:8, 1:3] = 1
+    return occ[None]
+
+
+def test_tiny_world_model_fits_a_moving_box():
+    torch.manual_seed(0)
+    model = tiny_world_model().train()
+    occ = shifting_sequence()
+    planes = model.encode_sequence(occ)
+    past = torch.zeros(1, 4, 2)
+    future = torch.tensor([[[1.0, 0.0]] * 6])
+    cfg = WorldLossConfig(num_occupied=200, num_near_free=100, num_far_free=50)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=3e-3)
+    first = None
+    for _ in range(100):
+        loss, parts = rollout_loss(model, planes, occ, past, future, 0, 2, cfg)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        first = first or parts
+    assert parts["triplane"] < 0.35 * first["triplane"]
+    assert parts["occupancy"] < 0.05 * first["occupancy"]
+    assert parts["action"] < 0.01 * first["action"]
+
+
+@pytest.fixture(scope="module")
+def world_ckpt(tmp_path_factory):
+    root = tmp_path_factory.mktemp("stage2")
+    assert main(["train-ae", "--config", "small", "train.steps=1", f"train.out_dir={root / 'ae'}", *TINY_AE]) == 0
+    out = root / "wm"
+    args = ["train-wm", "--config", "small", "--ae", str(root / "ae" / "last.pt"), f"data.cache_dir={root / 'cache'}",
+            f"train.out_dir={out}", *TINY_WM]
+    assert main([*args, "train.steps=1"]) == 0
+    assert main([*args, "train.steps=2", "--resume"]) == 0  # resumes from step 1
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    assert len(list((root / "cache").glob("triplanes-*.pt"))) == 1  # frames encoded once, reused
+    return out / "last.pt"
+
+
+def test_train_log_has_every_loss_part(world_ckpt):
+    events = [json.loads(line) for line in (world_ckpt.parent / "metrics.jsonl").read_text().splitlines()]
+    train = [e for e in events if e["event"] == "train"]
+    assert [e["step"] for e in train] == [1, 2]
+    assert {"loss", "triplane", "occupancy", "action"} <= set(train[-1]["values"])
+    assert any(e["event"] == "eval" and "miou_avg" in e["values"] for e in events)
+
+
+def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
+    assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
+    assert "| t3former |" in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity"}
+    keys = {"miou", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
+    assert all(set(m) == keys for m in metrics.values())
+    model = metrics["t3former"]
+    assert set(model["miou"]) == {"0s", "1s", "2s", "3s", "avg"} and set(model["l2_at"]) == {"1s", "2s", "3s", "avg"}
+    assert all(0 <= v <= 100 for v in model["miou"].values()) and model["fps"] > 0 and model["params"] > 0
+    assert model["miou"]["avg"] == pytest.approx(sum(model["miou"][h] for h in ("1s", "2s", "3s")) / 3)
+    assert metrics["copy_paste"]["l2_at"]["3s"] is None and metrics["copy_paste"]["miou"]["0s"] is None
+    assert metrics["constant_velocity"]["miou"]["avg"] is None and metrics["constant_velocity"]["l2_mean"]["3s"] >= 0
+
+
+def test_exported_weights_give_the_same_forecast(world_ckpt, tmp_path):
+    small = tmp_path / "wm.pt"
+    size = export_weights(world_ckpt, small)
+    assert size < world_ckpt.stat().st_size / 2  # no optimizer state, float16
+    full, _ = load_world_model(world_ckpt)
+    half, cfg = load_world_model(small)
+    assert cfg.model.forecaster_widths == [8, 8, 8]
+    occ = torch.randint(0, 18, (1, 5, 200, 200, 16), dtype=torch.uint8)
+    a, b = full.forecast(occ, torch.zeros(1, 4, 2), steps=2), half.forecast(occ, torch.zeros(1, 4, 2), steps=2)
+    assert (a.labels == b.labels).float().mean() > 0.99
+    torch.testing.assert_close(a.actions, b.actions, atol=1e-2, rtol=1e-2)
+
+
+def test_forecast_writes_occ3d_labels_and_pictures(world_ckpt, tmp_path):
+    root = tmp_path / "occ3d"
+    info = export_synthetic(root, "val", 1, 11, progress=False)
+    out = tmp_path / "pred"
+    assert main(["forecast", "--data", str(root), "--info", str(info), "--ckpt", str(world_ckpt), "--out", str(out),
+                 "--pictures", "1"]) == 0
+    files = sorted(out.rglob("labels.npz"))
+    assert len(files) == 6
+    semantics = np.load(files[0])["semantics"]
+    assert semantics.shape == (200, 200, 16) and semantics.dtype == np.uint8
+    gif = next(out.rglob("forecast.gif"))
+    assert Image.open(gif).n_frames == 11 and next(out.rglob("forecast.png")).exists()
+    plan = json.loads(next(out.rglob("trajectory.json")).read_text())
+    assert len(plan["planned"]) == 6
+
+
+def test_demo_runs_on_given_checkpoints(world_ckpt, tmp_path, capsys):
+    ckpts = tmp_path / "ckpts"
+    ckpts.mkdir()
+    export_weights(world_ckpt, ckpts / "wm-small.pt")
+    out = tmp_path / "demo"
+    assert main(["demo", "--ckpt-dir", str(ckpts), "--out", str(out), "--scenes", "1", "--stride", "29",
+                 "--pictures", "1"]) == 0
+    assert {"metrics.json", "metrics.md", "pictures"} <= {p.name for p in out.iterdir()}
+    assert len(list((out / "pictures").glob("*.gif"))) == 1
+    assert "demo finished" in capsys.readouterr().out
+
+
+def test_stage2_rejects_a_missing_autoencoder(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        main(["train-wm", "--config", "small", "--ae", str(tmp_path / "nope.pt"), f"train.out_dir={tmp_path}"])
+
+
+def test_rollout_steps_out_of_range(world_ckpt):
+    cfg = preset("small")
+    cfg.autoencoder_ckpt, cfg.loss.rollout_steps = str(world_ckpt.parent.parent / "ae" / "last.pt"), 7
+    planes = Triplane(torch.zeros(1, 11, 8, 8, 6), torch.zeros(1, 11, 8, 8, 2), torch.zeros(1, 11, 8, 6, 2))
+    batch = SequenceBatch(torch.zeros(1, 11, 16, 12, 4, dtype=torch.uint8), planes, torch.zeros(1, 4, 2),
+                          torch.zeros(1, 6, 2))
+    with pytest.raises(ValueError, match="rollout_steps"):
+        WorldModelTask(cfg).training_step(tiny_world_model(), batch)

@@ -110,6 +110,8 @@ class MotionPlanner(nn.Module):
         self.encoder = nn.TransformerEncoder(enc, layers, enable_nested_tensor=False)
         self.decoder = nn.TransformerDecoder(dec, layers)
         self.action_out = nn.Linear(d_act, 2)
+        nn.init.zeros_(self.action_out.weight)
+        nn.init.zeros_(self.action_out.bias)
         self.steps = steps
 
     def query(self, prev: Triplane, delta: Triplane, nxt: Triplane, step: int) -> Tensor:
@@ -119,9 +121,11 @@ class MotionPlanner(nn.Module):
         return self.fc(fused) + self.future_queries[step]
 
     def next_action(self, q_a: Tensor, actions: Tensor) -> Tensor:
-        """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``."""
+        """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``: the last
+        displacement plus the decoder's correction (zero at initialisation, so an untrained
+        planner drives at constant velocity and training learns how motion changes)."""
         tokens = self.action_in(actions) + self.action_time[: actions.shape[1]]
-        return self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
+        return actions[:, -1] + self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
 
     def forward(
         self,

@@ -82,7 +82,8 @@ class Task(Protocol):
         samples_in: number of samples in a batch, for throughput.
 
     Optional: ``config_dict() -> dict`` of plain values (numbers, strings, lists, dicts), stored in
-    checkpoints under ``state["config"]["task"]``.
+    checkpoints under ``state["config"]["task"]``; ``lr_scales() -> {submodule name: factor}``,
+    learning-rate multipliers of parts of the model (e.g. a decoder being fine-tuned).
     """
 
     def build_model(self) -> nn.Module: ...
@@ -181,7 +182,8 @@ class Trainer:
         if self.world > 1:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.model = DistributedDataParallel(self.module, device_ids=ids)
-        self.optimizer = torch.optim.AdamW(param_groups(self.module, cfg.weight_decay), lr=cfg.lr)
+        scales = task.lr_scales() if hasattr(task, "lr_scales") else None
+        self.optimizer = torch.optim.AdamW(param_groups(self.module, cfg.weight_decay, cfg.lr, scales), lr=cfg.lr)
         schedule = warmup_cosine(cfg.steps, min(cfg.warmup_steps, cfg.steps), cfg.lr, cfg.min_lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, schedule)
         self.amp_dtype = _amp_dtype(cfg.amp, self.device)
@@ -448,21 +450,32 @@ class Trainer:
             signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
 
 
-def param_groups(model: nn.Module, weight_decay: float) -> list[dict[str, Any]]:
+def param_groups(
+    model: nn.Module, weight_decay: float, lr: float | None = None, lr_scales: Mapping[str, float] | None = None
+) -> list[dict[str, Any]]:
     """AdamW groups: decay on weight matrices/kernels; none on biases, norm weights (every 1-D
-    parameter) and embedding tables. Frozen parameters are left out."""
-    decay: list[nn.Parameter] = []
-    no_decay: list[nn.Parameter] = []
+    parameter) and embedding tables. Frozen parameters are left out.
+
+    ``lr_scales`` maps submodule names (``"decoder"``) to learning-rate multipliers; their
+    parameters get groups of their own with ``lr = lr * scale``. Groups at the full rate come
+    first (decay, then no decay)."""
+    scales = dict(lr_scales or {})
+    groups: dict[tuple[float, bool], list[nn.Parameter]] = {}
     seen: set[int] = set()
-    for module in model.modules():
+    for name, module in model.named_modules():
+        scale = next((s for prefix, s in scales.items() if name == prefix or name.startswith(prefix + ".")), 1.0)
         for p in module.parameters(recurse=False):
             if not p.requires_grad or id(p) in seen:  # shared parameters appear once
                 continue
             seen.add(id(p))
             exempt = p.ndim < 2 or isinstance(module, nn.Embedding | nn.EmbeddingBag)
-            (no_decay if exempt else decay).append(p)
-    groups = [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
-    return [g for g in groups if g["params"]]
+            groups.setdefault((scale, exempt), []).append(p)
+    ordered = sorted(groups, key=lambda key: (key[0] != 1.0, -key[0], key[1]))
+    return [
+        {"params": groups[key], "weight_decay": 0.0 if key[1] else weight_decay}
+        | ({} if lr is None else {"lr": lr * key[0]})
+        for key in ordered
+    ]
 
 
 def _amp_dtype(enabled: bool, device: torch.device) -> torch.dtype | None:

@@ -145,6 +145,17 @@ def test_weight_decay_skips_biases_norms_embeddings_and_frozen() -> None:
     assert {id(p) for p in no_decay["params"]} == {id(p) for p in exempt}
 
 
+def test_lr_scales_give_submodules_their_own_rate() -> None:
+    model = nn.Sequential(nn.Linear(3, 3), nn.Sequential(nn.Linear(3, 3)))
+    groups = param_groups(model, 0.01, lr=1e-3, lr_scales={"1": 0.1})
+    assert [(g["lr"], g["weight_decay"]) for g in groups] == [(1e-3, 0.01), (1e-3, 0.0), (1e-4, 0.01), (1e-4, 0.0)]
+    assert {id(p) for g in groups[2:] for p in g["params"]} == {id(p) for p in model[1].parameters()}
+    # the scheduler scales every group's own rate
+    opt = torch.optim.AdamW(groups, lr=1e-3)
+    torch.optim.lr_scheduler.LambdaLR(opt, lambda step: 0.5)
+    assert [g["lr"] for g in opt.param_groups] == pytest.approx([5e-4, 5e-4, 5e-5, 5e-5])
+
+
 def test_training_lowers_the_loss_and_writes_outputs(tmp_path: Path) -> None:
     task = ToyTask(stochastic=False)
     cfg = toy_config(tmp_path, steps=60, log_every=10, eval_every=20, ckpt_every=30)

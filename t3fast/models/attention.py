@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-SHORT = 16  # key lengths up to this use the explicit einsum path
+SHORT = 16  # key lengths up to this (or a single query) use the explicit einsum path
 
 
 class Attention(nn.Module):
@@ -35,7 +35,7 @@ class Attention(nn.Module):
         q = self.q(x).view(n, tq, h, d // h)
         k = self.k(context).view(n, tk, h, d // h)
         v = self.v(context).view(n, tk, h, d // h)
-        if tk <= SHORT:
+        if tk <= SHORT or tq == 1:
             scores = torch.einsum("nqhd,nkhd->nhqk", q, k) * (1.0 / math.sqrt(d // h))
             out = torch.einsum("nhqk,nkhd->nqhd", scores.softmax(dim=-1), v)
         else:

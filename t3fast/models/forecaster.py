@@ -39,13 +39,59 @@ def _sinusoid_2d(h: int, w: int, dim: int, device: torch.device) -> Tensor:
     return torch.cat([ay.sin(), ay.cos(), ax.sin(), ax.cos()], dim=1)
 
 
+LOCAL_FRAMES = 2  # history frames the neighbourhood attention reads (motion needs two)
+
+
+class LocalAttention(nn.Module):
+    """Neighbourhood attention: the query of each location ``[B, D, h, w]`` attends to the
+    ``(2 radius + 1)^2`` neighbours of that location in each of ``frames`` maps
+    ``[B, frames, D, h, w]``; keys carry a learned embedding of their frame and offset.
+    Keys and values are projected before the neighbourhoods are gathered (one ``unfold``
+    each), and scores are formed in the unfolded layout, with no token copies."""
+
+    def __init__(self, dim: int, heads: int, radius: int, frames: int):
+        super().__init__()
+        self.heads, self.radius = heads, radius
+        self.norm = nn.GroupNorm(1, dim)
+        self.q, self.k, self.v, self.out = (nn.Conv2d(dim, dim, 1) for _ in range(4))
+        self.offsets = nn.Parameter(torch.randn(frames, dim, (2 * radius + 1) ** 2) * 0.02)
+        nn.init.zeros_(self.out.weight)  # starts as "no contribution"
+        nn.init.zeros_(self.out.bias)
+
+    def _gather(self, x: Tensor, b: int, t: int) -> Tensor:
+        d, h, w = x.shape[-3:]
+        k = 2 * self.radius + 1
+        return F.unfold(x, k, padding=self.radius).view(b, t, d, k * k, h * w)
+
+    def forward(self, query: Tensor, maps: Tensor) -> Tensor:
+        b, t, d, h, w = maps.shape
+        heads, dh = self.heads, d // self.heads
+        flat = self.norm(maps.flatten(0, 1))
+        keys = self._gather(self.k(flat), b, t) + self.offsets[-t:, :, :, None]  # [B, T, D, K, hw]
+        values = self._gather(self.v(flat), b, t)
+        q = self.q(query).view(b, 1, heads, dh, 1, h * w) / math.sqrt(dh)
+        scores = (keys.view(b, t, heads, dh, -1, h * w) * q).sum(3)  # [B, T, heads, K, hw]
+        attn = scores.permute(0, 2, 1, 3, 4).reshape(b, heads, -1, h * w).softmax(dim=2)
+        attn = attn.view(b, heads, t, 1, -1, h * w).transpose(1, 2)  # [B, T, heads, 1, K, hw]
+        out = (values.view(b, t, heads, dh, -1, h * w) * attn).sum((1, 4))  # [B, heads, dh, hw]
+        return self.out(out.reshape(b, d, h, w))
+
+
 class ScaleTransformer(nn.Module):
     """History tokens of one scale -> that scale's token change for future step ``k``.
 
-    Input ``[B, T, D, h, w]``, output ``[B, D, h, w]``.
+    Input ``[B, T, D, h, w]``, output ``[B, D, h, w]``. ``full_attention``: one sequence of all
+    ``T h w`` tokens. Otherwise the encoder attends over each location's own ``T`` frames and
+    each location's query (the step's learnable query plus its newest memory token) attends to
+    the memory of its ``(2 radius + 1)^2`` neighbourhood in every history frame (keys carry a
+    learned embedding of their frame and offset), so content can move up to ``radius`` cells
+    per scale and step.
     """
 
-    def __init__(self, dim: int, history: int, steps: int, heads: int, layers: int, full_attention: bool):
+    def __init__(
+        self, dim: int, history: int, steps: int, heads: int, layers: int, full_attention: bool,
+        local: bool = True, radius: int = 3,
+    ):
         super().__init__()
         self.full_attention = full_attention
         self.time = nn.Parameter(torch.zeros(history, dim))  # which past frame a token comes from
@@ -54,6 +100,7 @@ class ScaleTransformer(nn.Module):
         nn.init.normal_(self.queries, std=0.02)
         self.encoder = TransformerStack(dim, heads, layers)
         self.decoder = TransformerStack(dim, heads, layers, cross=True)
+        self.local = LocalAttention(dim, heads, radius, LOCAL_FRAMES) if local and not full_attention else None
 
     def forward(self, x: Tensor, step: int) -> Tensor:
         b, t, d, h, w = x.shape
@@ -64,12 +111,16 @@ class ScaleTransformer(nn.Module):
             memory = self.encoder((tokens + space).reshape(b, h * w * t, d))
             q = (query + space.view(h * w, d)).expand(b, h * w, d)
             return self.decoder(q, memory).transpose(1, 2).reshape(b, d, h, w)
-        memory = self.encoder(tokens.reshape(b * h * w, t, d))
-        out = self.decoder(query.expand(b * h * w, 1, d), memory)
-        # contiguous NCHW: this permuted (channels-last) layout otherwise propagates into the
+        memory = self.encoder(tokens.reshape(b * h * w, t, d))  # [B h w, T, D]
+        q = (query + memory[:, -1]).unsqueeze(1)
+        out = self.decoder(q, memory).view(b, h, w, d).permute(0, 3, 1, 2)
+        if self.local is not None:  # content moves: gather from the neighbourhood in the last frames
+            grid = memory.view(b, h, w, t, d)[:, :, :, -LOCAL_FRAMES:].permute(0, 3, 4, 1, 2)
+            out = out + self.local(q.view(b, h, w, d).permute(0, 3, 1, 2), grid)
+        # contiguous NCHW: a permuted (channels-last) layout otherwise propagates into the
         # planner's convs, whose oneDNN weight gradient then aborted with heap corruption
         # (torch 2.13 CPU; regression test in tests/models/test_world_model.py)
-        return out.view(b, h, w, d).permute(0, 3, 1, 2).contiguous()
+        return out.contiguous()
 
 
 class PlanePredictor(nn.Module):
@@ -98,7 +149,10 @@ class PlanePredictor(nn.Module):
             )
             if v:
                 h, w = (h + 1) // 2, (w + 1) // 2
-            self.scales.append(ScaleTransformer(width, history, steps, heads, layers, history * h * w <= max_tokens))
+            full = history * h * w <= max_tokens
+            # neighbourhood attention below the finest scale: at the second scale a radius of
+            # 3 cells spans 6 plane cells (~5 m), one step of ego motion at ~10 m/s
+            self.scales.append(ScaleTransformer(width, history, steps, heads, layers, full, local=v > 0))
             prev = width
         self.up = nn.ModuleList(
             nn.Sequential(

@@ -76,7 +76,7 @@ class Stage2Config:
 
     autoencoder_ckpt: str = "runs/ae-small/best.pt"
     autoencoder: AutoencoderConfig | None = None
-    decoder_lr_scale: float = 0.1  # the pretrained decoder is fine-tuned at this fraction of train.lr
+    decoder_lr_scale: float = 0.1  # the pretrained decoder is fine-tuned at this fraction of train.lr; 0 freezes it
     model: WorldModelConfig = field(default_factory=WorldModelConfig)
     data: SequencesConfig = field(default_factory=SequencesConfig)
     loss: WorldLossConfig = field(default_factory=WorldLossConfig)
@@ -87,9 +87,12 @@ def _small(out: str, ae: str = "small", **model) -> Stage2Config:
     return Stage2Config(
         autoencoder_ckpt=f"runs/ae-{ae}/best.pt",
         model=replace(copy.deepcopy(WORLD_MODELS["small"]), **model),
+        # the decoder stays as pretrained: CPU-budget forecasts are still too coarse to fine-tune it
+        # on (it learns to blur them, and its reconstruction falls)
+        decoder_lr_scale=0.0,
         data=SequencesConfig(train_scenes=30),
-        loss=WorldLossConfig(rollout_steps=1),
-        train=TrainConfig(steps=1000, batch_size=2, lr=1e-3, warmup_steps=50, log_every=25, eval_every=500,
+        loss=WorldLossConfig(rollout_steps=2),
+        train=TrainConfig(steps=800, batch_size=1, lr=1e-3, warmup_steps=50, log_every=25, eval_every=400,
                           ckpt_every=200, out_dir=f"runs/{out}"),
     )
 
@@ -224,6 +227,8 @@ class WorldModelTask:
     def build_model(self) -> nn.Module:
         model = build_world_model(self.cfg)
         load_autoencoder_into(model, self.cfg.autoencoder_ckpt)
+        if self.cfg.decoder_lr_scale == 0:
+            model.decoder.requires_grad_(False)  # still passes the occupancy loss on to the forecaster
         self._encoder = model.encoder
         return model
 
@@ -272,7 +277,7 @@ class WorldModelTask:
     def lr_scales(self) -> dict[str, float]:
         # at the full rate, the occupancy loss of early, poor forecasts overwrites the decoder
         # (reconstruction fell from 92 to 43 mIoU within 200 steps)
-        return {"decoder": self.cfg.decoder_lr_scale}
+        return {"decoder": self.cfg.decoder_lr_scale} if self.cfg.decoder_lr_scale else {}
 
     def config_dict(self) -> dict:
         return config_to_dict(self.cfg)

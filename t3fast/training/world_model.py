@@ -3,8 +3,11 @@
 
 The encoder of a stage-1 checkpoint is frozen. Each training sample is an 11-frame window;
 a rollout of ``loss.rollout_steps`` autoregressive steps starts at a random future step
-``k``: the history is the encoded frames ``k .. k + 4`` (ground truth) and later steps see the
-model's own predictions, as at inference. The loss of each predicted step is
+``k``. Its history is what the model would have at step ``k`` at inference: the encoded
+frames up to the present and the model's own predictions of steps ``0 .. k-1``, computed
+without gradients (the "pushforward" trick of Brandstetter et al. 2022: training sees its
+own errors, at the cost of forward passes only); later steps of the rollout see the
+model's predictions with gradients. The loss of each predicted step is
 
     L1(next, enc(frame)) + gamma * MSE(next, enc(frame))        # triplane
     + xi * (CE + Lovasz)(decoder(next) at sampled points)      # occupancy
@@ -64,6 +67,7 @@ class WorldLossConfig:
     action_weight: float = 1.0
     lovasz_weight: float = 1.0
     rollout_steps: int = 6  # autoregressive steps per sample (1..6), from a random start
+    pushforward: bool = True  # a rollout from step k > 0 starts from the model's own k predictions
     num_occupied: int = 10_000  # query points per predicted frame
     num_near_free: int = 5_000
     num_far_free: int = 2_000
@@ -91,8 +95,8 @@ def _small(out: str, ae: str = "small", **model) -> Stage2Config:
         # on (it learns to blur them, and its reconstruction falls)
         decoder_lr_scale=0.0,
         data=SequencesConfig(train_scenes=30),
-        loss=WorldLossConfig(rollout_steps=2),
-        train=TrainConfig(steps=800, batch_size=1, lr=1e-3, warmup_steps=50, log_every=25, eval_every=400,
+        loss=WorldLossConfig(rollout_steps=1),
+        train=TrainConfig(steps=700, batch_size=1, lr=1e-3, warmup_steps=50, log_every=25, eval_every=350,
                           ckpt_every=200, out_dir=f"runs/{out}"),
     )
 
@@ -190,10 +194,20 @@ def rollout_loss(
 ) -> tuple[Tensor, dict[str, float]]:
     """Stage-2 loss of one rollout of ``steps`` steps starting at future step ``first``.
 
+    With ``loss.pushforward`` the history of step ``first`` holds the model's own predictions of
+    the ``first`` earlier future steps (computed without gradients), as at inference, instead
+    of encoded ground truth.
+
     Args:
         planes: encoded frames ``[B, 11, C, H, W]``; occ: labels ``[B, 11, X, Y, Z]``.
     """
     history = planes.map(lambda p: p[:, first : first + PRESENT + 1])
+    if loss.pushforward and first:
+        forecaster = model.module.forecaster if hasattr(model, "module") else model.forecaster
+        with torch.no_grad():
+            own, _ = forecaster(planes.map(lambda p: p[:, : PRESENT + 1]), first)
+        history = Triplane(*(None if h is None else torch.cat([h[:, : PRESENT + 1 - first], *(
+            o.unsqueeze(1) for o in own_plane)], dim=1) for h, own_plane in zip(history, zip(*own))))
     actions = torch.cat([past_actions, future_actions[:, :first]], dim=1)
     targets = [PRESENT + 1 + first + j for j in range(steps)]
     slots = (loss.num_occupied, loss.num_near_free, loss.num_far_free)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -154,3 +155,23 @@ def test_rollout_steps_out_of_range(world_ckpt):
                           torch.zeros(1, 6, 2))
     with pytest.raises(ValueError, match="rollout_steps"):
         WorldModelTask(cfg).training_step(tiny_world_model(), batch)
+
+
+def test_pushforward_history_is_the_models_own_forecast():
+    """A rollout from step k starts from the model's own k predictions, as at inference: its
+    loss equals that of the same step in a full rollout from the present."""
+    torch.manual_seed(0)
+    model = tiny_world_model().eval()
+    occ = shifting_sequence()
+    planes = model.encode_sequence(occ)
+    past, future = torch.zeros(1, 4, 2), torch.ones(1, 6, 2)
+    cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10, xi=0.0, action_weight=0.0)
+    with torch.no_grad():
+        pushed = rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["triplane"]
+        full, _, _ = model(planes.map(lambda p: p[:, :5]), past, steps=3)
+        target = planes.map(lambda p: p[:, 7])
+        expected = sum(torch.nn.functional.l1_loss(p, t) + torch.nn.functional.mse_loss(p, t)
+                       for p, t in zip(full[2], target))
+        teacher = rollout_loss(model, planes, occ, past, future, 2, 1, replace(cfg, pushforward=False))[1]
+    assert pushed == pytest.approx(float(expected), rel=1e-5)
+    assert teacher["triplane"] != pytest.approx(pushed, rel=1e-3)  # ground-truth history differs

@@ -59,9 +59,10 @@ def _demo(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.evaluation.commands import load_models
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
+    from t3fast.training.distributed import default_device
 
     start = time.perf_counter()
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = default_device()
     models = load_models(checkpoint_paths(args.ckpt_dir), device)
     print(f"models: {', '.join(models)} ({device})")
     dataset = SyntheticDriving("test", args.scenes, stride=args.stride)

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from t3fast.training.distributed import default_device
+
 
 def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate = sub.add_parser("eval", help="world-model table: forecasting, planning, speed; baselines and ablations")
@@ -32,10 +34,6 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     forecast.set_defaults(func=_forecast)
 
 
-def _device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
 def load_models(paths: list[Path], device: torch.device) -> dict:
     """Stage-2 checkpoints keyed by method name (see :func:`t3fast.evaluation.report.method_name`)."""
     from t3fast.evaluation.report import method_name
@@ -55,7 +53,7 @@ def _eval(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
 
-    device = _device()
+    device = default_device()
     models = load_models(args.ckpt, device)
     dataset = SyntheticDriving(args.split, args.scenes, stride=args.stride)
     results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device,
@@ -84,7 +82,7 @@ def _forecast(args: argparse.Namespace) -> int:
     from t3fast.training.world_model import load_world_model
     from t3fast.viz import save_forecast_pictures
 
-    device = _device()
+    device = default_device()
     model, _ = load_world_model(args.ckpt, device)
     dataset = Occ3DNuScenes(args.data, args.info or _find_info(args.data), stride=args.stride)
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):

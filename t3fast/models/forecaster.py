@@ -12,7 +12,9 @@ Attention per scale: full spatio-temporal attention over all ``T * h * w`` token
 far too many. A scale therefore uses full attention when ``T * h * w <= max_tokens`` (the
 coarse scales, where objects' displacements span few cells and global context matters) and
 temporal attention otherwise (each location attends over its own history: tokens ``T``,
-cost ``h w T^2``; at fine scales motion is local, and the coarser scales supply the context).
+cost ``h w T^2``). Below the finest scale each location's query also attends to its
+neighbourhood in the last frames (:class:`LocalAttention`), so content that moves with the
+ego can be moved sharply instead of being rebuilt from the coarse scales.
 """
 
 from __future__ import annotations
@@ -83,9 +85,9 @@ class ScaleTransformer(nn.Module):
     Input ``[B, T, D, h, w]``, output ``[B, D, h, w]``. ``full_attention``: one sequence of all
     ``T h w`` tokens. Otherwise the encoder attends over each location's own ``T`` frames and
     each location's query (the step's learnable query plus its newest memory token) attends to
-    the memory of its ``(2 radius + 1)^2`` neighbourhood in every history frame (keys carry a
-    learned embedding of their frame and offset), so content can move up to ``radius`` cells
-    per scale and step.
+    that memory; with ``local`` the query also attends to the ``(2 radius + 1)^2``
+    neighbourhood of the location in the last ``LOCAL_FRAMES`` frames, so content can move up
+    to ``radius`` cells per scale and step.
     """
 
     def __init__(
@@ -246,7 +248,5 @@ class DeltaTriplaneForecaster(nn.Module):
             nxt, delta = self.step(history, min(k, self.steps - 1))
             futures.append(nxt)
             deltas.append(delta)
-            history = Triplane(
-                *(None if h is None else torch.cat([h, n.unsqueeze(1)], dim=1) for h, n in zip(history, nxt))
-            )
+            history = history.append(nxt)
         return futures, deltas

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import torch
 from torch import Tensor
 
 
@@ -30,3 +31,8 @@ class Triplane(NamedTuple):
     def map(self, fn) -> Triplane:
         """Applies ``fn`` to each plane."""
         return Triplane(*(None if p is None else fn(p) for p in self))
+
+    def append(self, frame: Triplane) -> Triplane:
+        """A history of planes ``[B, T, C, H, W]`` with ``frame`` (planes ``[B, C, H, W]``) added
+        as time step ``T``."""
+        return Triplane(*(None if h is None else torch.cat([h, f.unsqueeze(1)], dim=1) for h, f in zip(self, frame)))

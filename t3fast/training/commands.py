@@ -6,8 +6,6 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
-
 
 def add_training_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train-ae", help="pretrain the triplane autoencoder (stage 1)")
@@ -43,62 +41,52 @@ def _stage1_config(name: str, overrides: list[str]):
     return load_config(Stage1Config, config_to_dict(base), overrides)
 
 
-def _train_ae(args: argparse.Namespace) -> int:
-    from t3fast.training.autoencoder import AutoencoderTask
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The dotted overrides plus those the shared flags stand for."""
+    overrides = list(args.overrides)
+    if args.data:
+        overrides.append(f"data.source={args.data}")
+    if args.resume:
+        overrides.append("train.resume=true")
+    return overrides
+
+
+def _fit(task, cfg, parts: tuple[str, ...], name: str) -> int:
+    """Train ``task`` with ``cfg.train``; rank 0 saves the resolved config and prints the
+    parameter count of each of ``parts`` (submodules of the model) and the final metrics."""
     from t3fast.training.config import save_config
     from t3fast.training.distributed import cleanup, is_main
     from t3fast.training.trainer import Trainer
 
-    overrides = list(args.overrides)
-    if args.data:
-        overrides.append(f"data.source={args.data}")
-    if args.resume:
-        overrides.append("train.resume=true")
-    cfg = _stage1_config(args.config, overrides)
-    task = AutoencoderTask(cfg)
     trainer = Trainer(task, cfg.train)
     if is_main():
         Path(cfg.train.out_dir).mkdir(parents=True, exist_ok=True)
         save_config(cfg, Path(cfg.train.out_dir) / "config.yaml")
-        params = sum(p.numel() for p in trainer.module.parameters())
-        enc = sum(p.numel() for p in trainer.module.encoder.parameters())
-        print(f"autoencoder {args.config}: {params:,} parameters (encoder {enc:,}, decoder {params - enc:,})")
+        counts = {part: sum(p.numel() for p in getattr(trainer.module, part).parameters()) for part in parts}
+        total = sum(p.numel() for p in trainer.module.parameters())
+        print(f"{name}: {total:,} parameters (" + ", ".join(f"{k} {v:,}" for k, v in counts.items()) + ")")
     result = trainer.fit()
     if is_main():
         print(json.dumps(result, indent=2))
     cleanup()
     return 130 if trainer.interrupted else 0
+
+
+def _train_ae(args: argparse.Namespace) -> int:
+    from t3fast.training.autoencoder import AutoencoderTask
+
+    task = AutoencoderTask(_stage1_config(args.config, _overrides(args)))
+    return _fit(task, task.cfg, ("encoder", "decoder"), f"autoencoder {args.config}")
 
 
 def _train_wm(args: argparse.Namespace) -> int:
-    from t3fast.training.config import config_to_dict, load_config, save_config
-    from t3fast.training.distributed import cleanup, is_main
-    from t3fast.training.trainer import Trainer
+    from t3fast.training.config import config_to_dict, load_config
     from t3fast.training.world_model import PRESETS, Stage2Config, WorldModelTask, preset
 
-    overrides = list(args.overrides)
-    if args.ae:
-        overrides.append(f"autoencoder_ckpt={args.ae}")
-    if args.data:
-        overrides.append(f"data.source={args.data}")
-    if args.resume:
-        overrides.append("train.resume=true")
+    overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
     base = preset(args.config) if args.config in PRESETS else load_config(Stage2Config, args.config)
-    cfg = load_config(Stage2Config, config_to_dict(base), overrides)
-    task = WorldModelTask(cfg)
-    trainer = Trainer(task, cfg.train)
-    if is_main():
-        Path(cfg.train.out_dir).mkdir(parents=True, exist_ok=True)
-        save_config(task.cfg, Path(cfg.train.out_dir) / "config.yaml")
-        model = trainer.module
-        counts = {name: sum(p.numel() for p in getattr(model, name).parameters())
-                  for name in ("encoder", "forecaster", "planner", "decoder")}
-        print(f"world model {args.config}: " + ", ".join(f"{k} {v:,}" for k, v in counts.items()) + " parameters")
-    result = trainer.fit()
-    if is_main():
-        print(json.dumps(result, indent=2))
-    cleanup()
-    return 130 if trainer.interrupted else 0
+    task = WorldModelTask(load_config(Stage2Config, config_to_dict(base), overrides))
+    return _fit(task, task.cfg, ("encoder", "forecaster", "planner", "decoder"), f"world model {args.config}")
 
 
 def _eval_ae(args: argparse.Namespace) -> int:
@@ -108,12 +96,13 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.training.autoencoder import Stage1Config
     from t3fast.training.checkpoint import load_checkpoint
     from t3fast.training.config import load_config
+    from t3fast.training.distributed import default_device
 
     state = load_checkpoint(args.ckpt)
     cfg = load_config(Stage1Config, state["config"]["task"])
     model = TriplaneAutoencoder(cfg.model)
     model.load_state_dict(state["model"])
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = default_device()
     model.to(device)
     frames = SyntheticFrames(args.split, args.scenes, cfg.data.frames_per_scene)
     indices = list(range(0, len(frames), args.stride))

@@ -16,6 +16,11 @@ import torch.distributed as dist
 V = TypeVar("V", float, torch.Tensor, dict)
 
 
+def default_device() -> torch.device:
+    """CUDA when available, else the CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
 def init_distributed(device: str = "auto") -> torch.device:
     """Join the process group described by the torchrun environment and return this process's device.
 
@@ -25,7 +30,7 @@ def init_distributed(device: str = "auto") -> torch.device:
 
     Without WORLD_SIZE > 1 in the environment no group is created. Calling it again is harmless.
     """
-    kind = ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+    kind = default_device().type if device == "auto" else device
     if kind not in ("cuda", "cpu"):
         raise ValueError(f"init_distributed: device must be 'auto', 'cuda' or 'cpu', got {device!r}")
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))

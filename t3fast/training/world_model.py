@@ -172,13 +172,10 @@ def collate_windows(items: list) -> SequenceBatch:
     )
 
 
-def load_autoencoder_into(model: T3Former, ckpt: str) -> AutoencoderConfig:
-    """Copy a stage-1 checkpoint's encoder and decoder weights into ``model``; returns its config."""
-    state = load_checkpoint(ckpt)
-    weights = state["model"]
+def load_autoencoder_into(model: T3Former, weights: dict[str, Tensor]) -> None:
+    """Copy a stage-1 state dict's encoder and decoder weights into ``model``."""
     model.encoder.load_state_dict({k[len("encoder."):]: v for k, v in weights.items() if k.startswith("encoder.")})
     model.decoder.load_state_dict({k[len("decoder."):]: v for k, v in weights.items() if k.startswith("decoder.")})
-    return load_config(AutoencoderConfig, state["config"]["task"]["model"])
 
 
 def build_world_model(cfg: Stage2Config) -> T3Former:
@@ -201,13 +198,13 @@ def rollout_loss(
     Args:
         planes: encoded frames ``[B, 11, C, H, W]``; occ: labels ``[B, 11, X, Y, Z]``.
     """
-    history = planes.map(lambda p: p[:, first : first + PRESENT + 1])
+    history = planes.map(lambda p: p[:, : PRESENT + 1 + first])  # the forecaster reads the last 5
     if loss.pushforward and first:
         forecaster = model.module.forecaster if hasattr(model, "module") else model.forecaster
+        history = planes.map(lambda p: p[:, : PRESENT + 1])
         with torch.no_grad():
-            own, _ = forecaster(planes.map(lambda p: p[:, : PRESENT + 1]), first)
-        history = Triplane(*(None if h is None else torch.cat([h[:, : PRESENT + 1 - first], *(
-            o.unsqueeze(1) for o in own_plane)], dim=1) for h, own_plane in zip(history, zip(*own))))
+            for frame in forecaster(history, first)[0]:
+                history = history.append(frame)
     actions = torch.cat([past_actions, future_actions[:, :first]], dim=1)
     targets = [PRESENT + 1 + first + j for j in range(steps)]
     slots = (loss.num_occupied, loss.num_near_free, loss.num_far_free)
@@ -231,16 +228,15 @@ class WorldModelTask:
 
     def __init__(self, cfg: Stage2Config):
         self.cfg = copy.deepcopy(cfg)
+        self._stage1 = load_checkpoint(self.cfg.autoencoder_ckpt)  # read once: config and weights
         if self.cfg.autoencoder is None:
-            self.cfg.autoencoder = load_config(
-                AutoencoderConfig, load_checkpoint(self.cfg.autoencoder_ckpt)["config"]["task"]["model"]
-            )
+            self.cfg.autoencoder = load_config(AutoencoderConfig, self._stage1["config"]["task"]["model"])
         self._val = None
         self._encoder = None
 
     def build_model(self) -> nn.Module:
         model = build_world_model(self.cfg)
-        load_autoencoder_into(model, self.cfg.autoencoder_ckpt)
+        load_autoencoder_into(model, self._stage1["model"])
         if self.cfg.decoder_lr_scale == 0:
             model.decoder.requires_grad_(False)  # still passes the occupancy loss on to the forecaster
         self._encoder = model.encoder

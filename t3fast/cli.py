@@ -1,9 +1,15 @@
-"""The ``t3fast`` command line: one sub-command per job."""
+"""The ``t3fast`` command line: one sub-command per job.
+
+Errors the user can fix (:data:`t3fast.errors.EXPECTED_ERRORS`) print one line,
+``t3fast <command>: <message>``, and exit 1 (2 for bad arguments); ``--debug`` shows the
+traceback instead.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import traceback
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -12,7 +18,8 @@ def build_parser() -> argparse.ArgumentParser:
     from t3fast.evaluation.commands import add_evaluation_commands
     from t3fast.training.commands import add_training_commands
 
-    parser = argparse.ArgumentParser(prog="t3fast", description=__doc__)
+    parser = argparse.ArgumentParser(prog="t3fast", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
 
     info = sub.add_parser("info", help="show how the compiled operators were built")
@@ -22,7 +29,20 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_commands(sub)
     add_training_commands(sub)
     add_evaluation_commands(sub)
+    _add_debug_everywhere(parser)
     return parser
+
+
+def _add_debug_everywhere(parser: argparse.ArgumentParser) -> None:
+    """Accept ``--debug`` after any sub-command too, and record each sub-command's name for
+    error messages. SUPPRESS keeps a sub-command from resetting a ``--debug`` given before it."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                child.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                                   help="show the full traceback of an error")
+                child.set_defaults(command_name=child.prog)
+                _add_debug_everywhere(child)
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -34,8 +54,17 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from t3fast.errors import EXPECTED_ERRORS, UsageError
+
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except EXPECTED_ERRORS as exc:
+        if args.debug:
+            traceback.print_exc()
+        message = str(exc) or type(exc).__name__
+        print(f"{args.command_name}: {message}", file=sys.stderr)
+        return 2 if isinstance(exc, UsageError) else 1
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ from torch.utils.data import Dataset
 
 from t3fast.data import classes as C
 from t3fast.data.sample import PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
+from t3fast.errors import DataFormatError
 
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 
@@ -54,7 +55,7 @@ NAME_TO_CLASS = {
 }
 
 
-class Occ3DFormatError(ValueError):
+class Occ3DFormatError(DataFormatError):
     """A dataset file is missing or malformed; the message names the file and the problem."""
 
 

@@ -15,10 +15,14 @@ from t3fast.evaluation.world_model import (
     evaluate_forecasts,
     measure_speed,
     t3former_method,
+    warp_const_vel_method,
+    warp_gt_ego_method,
 )
 from t3fast.models.world_model import T3Former
 
-BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velocity_method}
+# warp_gt_ego reads the true future poses: a reference for pure geometry, not a forecaster
+BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velocity_method,
+             "warp_const_vel": warp_const_vel_method, "warp_gt_ego": warp_gt_ego_method}
 
 
 def method_name(predict_delta: bool, scales: int, latent: str) -> str:

@@ -25,9 +25,10 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingBatch, collate_samples
-from t3fast.evaluation.baselines import constant_velocity, copy_paste
+from t3fast.evaluation.baselines import constant_velocity, copy_paste, warp_const_vel, warp_present
 from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
+from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
 
 OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
@@ -72,6 +73,19 @@ def copy_paste_method(batch: DrivingBatch) -> MethodOutput:
 def constant_velocity_method(batch: DrivingBatch) -> MethodOutput:
     """Constant-velocity ego motion; no occupancy."""
     return MethodOutput(actions=constant_velocity(batch.past_actions, NUM_FUTURE))
+
+
+def warp_const_vel_method(batch: DrivingBatch) -> MethodOutput:
+    """The present frame moved into each future ego frame, poses extrapolated at constant
+    velocity and yaw rate from the past poses; no plan."""
+    return MethodOutput(labels=warp_const_vel(batch.past_occ, batch.ego_poses, NUM_FUTURE))
+
+
+def warp_gt_ego_method(batch: DrivingBatch) -> MethodOutput:
+    """The present frame moved into each future ego frame with the TRUE future poses (uses
+    ground-truth ego motion: a reference for what geometry alone gives, not a forecaster)."""
+    future = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
+    return MethodOutput(labels=warp_present(batch.past_occ, future))
 
 
 def _summaries(occ: dict[str, OccupancyMetrics] | None, plan: PlanningMetrics | None) -> dict:

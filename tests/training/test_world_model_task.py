@@ -90,7 +90,7 @@ def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity"}
+    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity", "warp_const_vel", "warp_gt_ego"}
     keys = {"miou", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
     assert all(set(m) == keys for m in metrics.values())
     model = metrics["t3former"]

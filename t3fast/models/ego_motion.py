@@ -1,0 +1,137 @@
+"""Ego motion as geometry: planar poses, their extrapolation, and moving label volumes
+between ego frames.
+
+Every Occ3D frame is in its own ego frame, so between two frames the whole static scene
+moves by the ego's motion. The world model does not learn that: it brings its history into
+the present frame with the past poses, forecasts there (static content stays still), and
+moves each forecast into the future frame's own coordinates with the pose it plans or is
+given. Poses here are planar, ``(x, y, yaw)`` of a frame's ego in a reference frame (metres,
+radians, counter-clockwise from +x): the grid is 16 voxels high and driving is planar, so a
+height or pitch change between frames is ignored.
+
+Resampling is nearest-voxel: each voxel column of the target frame takes the column of the
+source frame that contains its centre, the whole column at once (heights do not change);
+columns whose centre falls outside the source grid get ``fill`` (free: unobserved).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from t3fast.data.classes import FREE, GRID_LOWER, VOXEL_SIZE
+
+
+def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
+    """Planar pose of every frame in frame ``reference``'s ego coordinates.
+
+    Args:
+        ego_poses: ego -> world ``[B, T, 4, 4]``.
+    Returns:
+        ``[B, T, 3]`` (x, y, yaw); frame ``reference`` is (0, 0, 0).
+    """
+    rel = torch.linalg.inv(ego_poses[:, reference : reference + 1].double()) @ ego_poses.double()
+    yaw = torch.atan2(rel[..., 1, 0], rel[..., 0, 0])
+    return torch.stack([rel[..., 0, 3], rel[..., 1, 3], yaw], dim=-1).to(ego_poses.dtype)
+
+
+def compose(a: Tensor, b: Tensor) -> Tensor:
+    """Pose ``b`` (given in frame ``a``) expressed in ``a``'s reference frame: ``a * b``, ``[..., 3]``."""
+    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return torch.stack([x, y, _wrap(a[..., 2] + b[..., 2])], dim=-1)
+
+
+def relative(a: Tensor, b: Tensor) -> Tensor:
+    """Pose ``b`` in frame ``a`` (both given in one reference frame): ``a^-1 * b``, ``[..., 3]``."""
+    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return torch.stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[..., 2] - a[..., 2])], dim=-1)
+
+
+def _wrap(angle: Tensor) -> Tensor:
+    return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
+
+
+def extrapolate_poses(past: Tensor, steps: int) -> Tensor:
+    """Constant velocity and yaw rate: the last step's motion, in the ego's own frame, repeated.
+
+    Args:
+        past: planar poses ``[B, T, 3]`` (T >= 2) in the present frame, the present last.
+    Returns:
+        ``[B, steps, 3]`` future poses in the present frame (an arc of constant curvature).
+    """
+    if past.shape[1] < 2:
+        raise ValueError(f"extrapolate_poses needs at least 2 past poses, got {past.shape[1]}")
+    step = relative(past[:, -2], past[:, -1])
+    pose, out = past[:, -1], []
+    for _ in range(steps):
+        pose = compose(pose, step)
+        out.append(pose)
+    return torch.stack(out, dim=1)
+
+
+def poses_from_displacements(displacements: Tensor, last_heading: Tensor | None = None) -> Tensor:
+    """Future poses from displacements ``[B, S, 2]`` (present frame; the ego at the origin):
+    positions are their cumulative sum, each heading is the direction of travel around that
+    step (the mean of the incoming and outgoing displacements; the last step's own direction
+    at the end). A displacement shorter than 5 cm keeps the previous heading, starting from
+    ``last_heading`` ``[B]`` (default 0, the present heading). Returns ``[B, S, 3]``."""
+    b, s = displacements.shape[:2]
+    xy = displacements.cumsum(1)
+    nxt = torch.cat([displacements[:, 1:], displacements[:, -1:]], dim=1)
+    direction = displacements + nxt
+    heading = torch.atan2(direction[..., 1], direction[..., 0])
+    moving = direction.norm(dim=-1) > 0.05
+    prev = torch.zeros(b, dtype=displacements.dtype, device=displacements.device) if last_heading is None \
+        else last_heading
+    out = []
+    for k in range(s):
+        prev = torch.where(moving[:, k], heading[:, k], prev)
+        out.append(prev)
+    return torch.cat([xy, torch.stack(out, dim=1).unsqueeze(-1)], dim=-1)
+
+
+def column_index(target_in_source: Tensor, grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """For each voxel column of a target frame whose pose in the source frame is
+    ``target_in_source`` ``[B, 3]``: the flat index of the source column containing its centre
+    and whether it lies inside the source grid. Returns ``([B, X * Y] int64, [B, X * Y] bool)``."""
+    nx, ny = grid
+    dev, dt = target_in_source.device, target_in_source.dtype
+    xs = GRID_LOWER[0] + VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5)
+    ys = GRID_LOWER[1] + VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5)
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    pts = torch.stack([gx.flatten(), gy.flatten(), torch.zeros_like(gx.flatten())], -1)  # [XY, 3]
+    src = compose(target_in_source[:, None, :], pts[None])  # [B, XY, 3]
+    i = torch.floor((src[..., 0] - GRID_LOWER[0]) / VOXEL_SIZE).long()
+    j = torch.floor((src[..., 1] - GRID_LOWER[1]) / VOXEL_SIZE).long()
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+    return (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1)), inside
+
+
+def warp_volume(volume: Tensor, target_in_source: Tensor, fill: int = FREE) -> Tensor:
+    """A volume ``[B, X, Y, Z]`` (or ``[B, X, Y, Z, ...]``) of the source frame resampled into
+    a target frame whose pose in the source frame is ``target_in_source`` ``[B, 3]``
+    (nearest column; outside the source grid: ``fill``)."""
+    b, nx, ny = volume.shape[:3]
+    index, inside = column_index(target_in_source, (nx, ny))
+    flat = volume.reshape(b, nx * ny, -1)
+    out = torch.gather(flat, 1, index[..., None].expand(-1, -1, flat.shape[-1]))
+    out = torch.where(inside[..., None], out, torch.full_like(out, fill))
+    return out.view(volume.shape)
+
+
+def warp_sequence(frames: Tensor, poses: Tensor, fill: int = FREE) -> Tensor:
+    """Frames ``[B, T, X, Y, Z]``, each in its own ego frame with planar pose ``poses``
+    ``[B, T, 3]`` in a common reference frame, all resampled into that reference frame."""
+    b, t = frames.shape[:2]
+    ref_in_frame = relative(poses, torch.zeros_like(poses))  # the reference frame seen from each frame
+    out = warp_volume(frames.flatten(0, 1), ref_in_frame.flatten(0, 1), fill)
+    return out.view(frames.shape)
+
+
+def unwarp_sequence(frames: Tensor, poses: Tensor, fill: int = FREE) -> Tensor:
+    """The inverse of :func:`warp_sequence`: frames ``[B, T, X, Y, Z]`` in the reference frame
+    resampled into each frame's own ego frame (pose ``poses`` ``[B, T, 3]`` in the reference)."""
+    return warp_volume(frames.flatten(0, 1), poses.flatten(0, 1), fill).view(frames.shape)

@@ -108,7 +108,7 @@ def make_network(rng: np.random.Generator, extent: float = 450.0) -> RoadNetwork
                     pos=float(pos),
                     lanes=lanes,
                     median=median,
-                    sidewalk=float(rng.uniform(3.0, 4.5)),
+                    sidewalk=float(rng.uniform(2.2, 4.0)),
                     median_barrier=bool(median == 0.0 and lanes == 2 and rng.random() < 0.5),
                 )
             )

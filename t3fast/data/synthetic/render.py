@@ -10,7 +10,7 @@ import numpy as np
 
 from t3fast.data import classes as C
 from t3fast.data.synthetic.layout import Warp
-from t3fast.data.synthetic.world import GROUND_TOP, GROUND_Z, RES, StaticMap, z_level
+from t3fast.data.synthetic.world import GROUND_TOP, GROUND_Z, MAX_RAISE, ON_GROUND, RES, StaticMap, z_level
 
 _XC = C.voxel_centers(0)
 _YC = C.voxel_centers(1)
@@ -20,7 +20,8 @@ _LEVELS = np.arange(C.GRID_SHAPE[2], dtype=np.uint8)
 def render_static(static: StaticMap, warp: Warp, pose: np.ndarray) -> np.ndarray:
     """Static world seen from ego ``pose`` (x, y, yaw in world coordinates): uint8 ``[200, 200, 16]``.
 
-    Nearest-neighbour lookup of each voxel column centre in the 0.2 m raster.
+    Nearest-neighbour lookup of each voxel column centre in the 0.2 m raster. The ground fills
+    levels ``GROUND_Z .. GROUND_Z + ground_h`` wherever no object column occupies them.
     """
     px, py, yaw = pose
     c, s = np.cos(yaw), np.sin(yaw)
@@ -35,7 +36,9 @@ def render_static(static: StaticMap, warp: Warp, pose: np.ndarray) -> np.ndarray
     obj = static.obj[i, j]
     occupied = (_LEVELS >= static.z0[i, j][..., None]) & (_LEVELS < static.z1[i, j][..., None])
     vol = np.where(occupied, obj[..., None], np.uint8(C.FREE))
-    vol[..., GROUND_Z] = static.ground[i, j]
+    levels = slice(GROUND_Z, GROUND_Z + MAX_RAISE + 1)
+    in_ground = _LEVELS[levels] <= GROUND_Z + static.ground_h[i, j][..., None]
+    vol[..., levels] = np.where(in_ground & ~occupied[..., levels], static.ground[i, j][..., None], vol[..., levels])
     return vol
 
 
@@ -62,7 +65,7 @@ def draw_boxes(vol: np.ndarray, boxes: np.ndarray, labels: np.ndarray) -> None:
         if i0 <= ci < i1 and j0 <= cj < j1:
             inside[ci - i0, cj - j0] = True
         top = z_level(height)
-        vol[i0:i1, j0:j1, GROUND_Z + 1 : top][inside] = label
+        vol[i0:i1, j0:j1, ON_GROUND:top][inside] = label
 
 
 def box_z(height: np.ndarray) -> np.ndarray:

@@ -125,6 +125,10 @@ def simulate_scene(seed: int, num_frames: int = 40) -> SceneWorld:
     n_vehicles = int(rng.integers(45, 75))
     n_pedestrians = int(rng.integers(40, 80))
     shares = np.array([k[-1] for k in VEHICLE_KINDS])
+    # every kind once before drawing by share, and the first truck towing, so that each
+    # scene has every agent class (a bus is 6 % of traffic and would be missing from many)
+    first_kinds = list(rng.permutation(len(VEHICLE_KINDS)))
+    towed = False
     for n, is_ped in ((n_vehicles, False), (n_pedestrians, True)):
         for _ in range(n):
             centre = reach[rng.integers(len(reach))]
@@ -140,7 +144,8 @@ def simulate_scene(seed: int, num_frames: int = 40) -> SceneWorld:
                 label, speed, acc = C.PEDESTRIAN, rng.uniform(1.0, 1.6), 1.0
                 schedule = motion.cruise_schedule(rng, steps, dt, speed, (4.0, 12.0), 0.1)
             else:
-                label, (l0, l1), (w0, w1), (h0, h1), (v0, v1), acc, _ = VEHICLE_KINDS[rng.choice(len(shares), p=shares)]
+                kind = first_kinds.pop() if first_kinds else rng.choice(len(shares), p=shares)
+                label, (l0, l1), (w0, w1), (h0, h1), (v0, v1), acc, _ = VEHICLE_KINDS[kind]
                 schedule = motion.cruise_schedule(rng, steps, dt, rng.uniform(v0, v1), (4.0, 10.0), 0.05)
             paths.append(path)
             sizes.append((rng.uniform(l0, l1), rng.uniform(w0, w1), rng.uniform(h0, h1)))
@@ -150,7 +155,8 @@ def simulate_scene(seed: int, num_frames: int = 40) -> SceneWorld:
             pedestrian.append(is_ped)
             follows.append(-1)
             hitch.append(0.0)
-            if label == C.TRUCK and rng.random() < 0.5:  # tow a trailer
+            if label == C.TRUCK and (not towed or rng.random() < 0.5):  # tow a trailer
+                towed = True
                 (l0, l1), (w0, w1), (h0, h1) = TRAILER_SIZE
                 size = (rng.uniform(l0, l1), rng.uniform(w0, w1), rng.uniform(h0, h1))
                 paths.append(path)

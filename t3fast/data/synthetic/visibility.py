@@ -17,7 +17,7 @@ import numpy as np
 
 from t3fast.data import classes as C
 
-SENSOR_Z = 1.4  # m, camera height in the ego frame (about 1.6 m above the ground)
+SENSOR_Z = 1.0  # m, camera height in the ego frame (1.6 m above the ground top at -0.6 m)
 AZIMUTH_STEP = np.deg2rad(0.4)
 RAY_STEP = 0.2  # m between samples along a ray
 SELF_GAP = 0.4  # m: columns nearer than this to a voxel do not occlude it (its own column)

@@ -21,8 +21,10 @@ def add_data_commands(sub: argparse._SubParsersAction) -> None:
     exp.add_argument("--frames", type=int, default=40, help="2 Hz frames per scene")
     exp.set_defaults(func=_export)
 
-    stats = cmds.add_parser("stats", help="class frequencies and ego-motion summary of a split")
+    stats = cmds.add_parser("stats", help="class frequencies, height profiles and ego-motion summary of a split")
     _add_source_args(stats)
+    stats.add_argument("--occ3d", type=Path,
+                       help="profile every labels.npz under this Occ3D folder instead (no info file needed)")
     stats.add_argument("--stride", type=int, default=5, help="window stride for the motion summary")
     stats.set_defaults(func=_stats)
 
@@ -66,8 +68,21 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _stats(args: argparse.Namespace) -> int:
-    from t3fast.data.stats import class_counts, format_class_table, format_motion_summary
+    from t3fast.data.stats import format_class_table, format_motion_summary
 
+    if args.scenes <= 0:
+        raise ValueError(f"--scenes must be at least 1, got {args.scenes}")
+    if args.occ3d is not None:
+        from t3fast.data.occ3d import read_labels
+
+        paths = sorted(Path(args.occ3d).rglob("labels.npz"))
+        if not paths:
+            raise ValueError(f"--occ3d {args.occ3d}: no labels.npz under it")
+        counts, profile = _label_stats(read_labels(p)["semantics"] for p in tqdm(paths, desc="frames", unit="frame"))
+        print(f"Occ3D {args.occ3d}: {len(paths)} frames")
+        print(format_class_table(counts))
+        print(profile)
+        return 0
     if args.root is None:
         from t3fast.data.synthetic.dataset import SyntheticScenes
 
@@ -80,21 +95,39 @@ def _stats(args: argparse.Namespace) -> int:
         elapsed = time.perf_counter() - start
         print(f"synthetic {args.split}: {len(scenes)} scenes x {args.frames_per_scene} frames, "
               f"generated in {elapsed:.1f} s ({elapsed / max(len(scenes), 1):.2f} s/scene)")
-        counts = class_counts(vols)
+        counts, profile = _label_stats(vols)
         ds = _dataset(args, args.stride)
         ds.scenes = scenes  # reuse the scenes just generated
     else:
         ds = _dataset(args, args.stride)
         from t3fast.data.occ3d import read_labels
 
-        counts = class_counts(
+        counts, profile = _label_stats(
             read_labels(ds.label_path(scene, f["token"]))["semantics"]
             for scene, frames in tqdm(ds.infos.items(), desc="scenes", unit="scene")
             for f in frames
         )
     print(format_class_table(counts))
+    print(profile)
     print(format_motion_summary(ds[i] for i in range(len(ds))))
     return 0
+
+
+def _label_stats(volumes) -> tuple:
+    """Class counts ``[256]`` and the printed height profile of label volumes, in one pass."""
+    import numpy as np
+
+    from t3fast.data import classes as C
+    from t3fast.data.stats import class_counts, format_height_profile, height_profile
+
+    counts = np.zeros(256, dtype=np.int64)
+    total = np.zeros((C.NUM_CLASSES, C.GRID_SHAPE[2]), dtype=np.int64)
+    frames = 0
+    for vol in volumes:
+        counts += class_counts([vol])
+        total += height_profile([vol])[0]
+        frames += 1
+    return counts, format_height_profile(total, frames)
 
 
 def _render(args: argparse.Namespace) -> int:

@@ -1,4 +1,5 @@
-"""Dataset statistics: class frequencies of the labels and how much the ego manoeuvres."""
+"""Dataset statistics: class frequencies and height profiles of the labels, and how much the
+ego manoeuvres."""
 
 from __future__ import annotations
 
@@ -32,6 +33,40 @@ def format_class_table(counts: np.ndarray) -> str:
         lines.append(f"255  {'ignore':<22}{100 * counts[C.IGNORE] / total:10.4f}")
     missing = [C.CLASS_NAMES[i] for i in range(C.FREE) if counts[i] == 0]
     lines.append(f"total voxels {total:,}; classes absent: {', '.join(missing) if missing else 'none'}")
+    return "\n".join(lines)
+
+
+def height_profile(volumes: Iterable[np.ndarray | torch.Tensor]) -> tuple[np.ndarray, int]:
+    """Voxel counts per class and z index ``[18, 16]`` (free included, ignore left out) summed
+    over label volumes ``[200, 200, 16]``, and the number of volumes."""
+    nz = C.GRID_SHAPE[2]
+    profile = np.zeros((C.NUM_CLASSES, nz), dtype=np.int64)
+    frames = 0
+    for vol in volumes:
+        arr = vol.numpy() if isinstance(vol, torch.Tensor) else np.asarray(vol)
+        flat = arr.reshape(-1, nz).astype(np.int64)
+        keep = flat < C.NUM_CLASSES
+        # one bincount over (class, z) pairs
+        pairs = (flat * nz + np.arange(nz))[keep]
+        profile += np.bincount(pairs, minlength=C.NUM_CLASSES * nz).reshape(C.NUM_CLASSES, nz)
+        frames += 1
+    return profile, frames
+
+
+def format_height_profile(profile: np.ndarray, frames: int) -> str:
+    """A printable table: per class, mean voxels per frame at each z index (0 = -1.0 to -0.6 m)
+    and the median z, then the free share of all voxels."""
+    nz = profile.shape[1]
+    per_frame = profile / max(frames, 1)
+    lines = [f"voxels per frame at each z index ({frames} frames)",
+             f"{'class':<22}" + "".join(f"{z:>6}" for z in range(nz)) + f"{'z50':>6}"]
+    for i in range(C.FREE):
+        if profile[i].sum() == 0:
+            continue
+        median = int(np.searchsorted(np.cumsum(profile[i]), profile[i].sum() / 2))
+        lines.append(f"{C.CLASS_NAMES[i]:<22}" + "".join(f"{v:6.0f}" for v in per_frame[i]) + f"{median:>6}")
+    free = profile[C.FREE].sum() / max(profile.sum(), 1)
+    lines.append(f"free: {100 * free:.1f} % of voxels")
     return "\n".join(lines)
 
 

@@ -213,3 +213,53 @@ def test_frames_dataset(synthetic):
     vol = frames[PRESENT]
     assert vol.shape == (200, 200, 16) and vol.dtype == torch.uint8
     assert torch.equal(vol, synthetic[0].occ[PRESENT])
+
+
+@pytest.fixture(scope="module")
+def layout_frames():
+    """Every 4th frame of three test scenes, ``[N, 200, 200, 16]``."""
+    return np.concatenate([generate_scene(scene_seed("test", k), 40).occ[::4] for k in range(3)])
+
+
+def test_ground_is_level_zero_wherever_there_is_road(layout_frames):
+    road = layout_frames == C.DRIVEABLE_SURFACE
+    assert road[..., GROUND_Z].sum() > 5000 * len(layout_frames)
+    assert not road[..., GROUND_Z + 1 :].any()
+    ground = np.isin(layout_frames, GROUND_CLASSES)
+    assert not ground[..., GROUND_Z + 3 :].any()  # kerbs and banks rise two levels at most
+
+
+def test_nothing_floats_under_the_ground(layout_frames):
+    """No free voxel under a ground voxel: raised ground is filled down to level 0."""
+    for z in range(GROUND_Z + 1, GROUND_Z + 3):
+        ground = np.isin(layout_frames[..., z], GROUND_CLASSES)
+        assert ground.any()
+        assert not (layout_frames[..., : z][ground] == C.FREE).any()
+
+
+def test_agents_rest_on_the_ground(layout_frames):
+    agent = np.isin(layout_frames, C.AGENT_CLASSES)
+    columns = agent.any(-1)
+    lowest = np.argmax(agent, axis=-1)[columns]
+    assert (lowest == GROUND_Z + 1).all()  # the bottom of every agent is the level above the ground
+    under = layout_frames[..., GROUND_Z][columns]
+    assert np.mean(under != C.FREE) > 0.99
+
+
+def test_trees_have_trunks_and_crowns_at_occ3d_heights(layout_frames):
+    veg = layout_frames == C.VEGETATION
+    trunk = veg[..., GROUND_Z : GROUND_Z + 6].all(-1) & veg[..., 8:11].any(-1)  # from the ground into a crown
+    assert trunk.sum() > 20
+    per_z = veg.sum(axis=(0, 1, 2))
+    assert per_z[7:11].mean() > 2 * per_z[GROUND_Z : GROUND_Z + 3].mean() > 0  # crowns above trunks and bushes
+    assert per_z[15] > 0  # big trees reach past the grid top
+
+
+def test_every_agent_class_turns_up_within_a_few_scenes(layout_frames):
+    present = set(np.unique(layout_frames).tolist())
+    missing = [C.CLASS_NAMES[c] for c in range(C.FREE) if c not in present]
+    assert not missing, missing
+
+
+def test_free_share_is_like_occ3d(layout_frames):
+    assert 0.92 < (layout_frames == C.FREE).mean() < 0.96

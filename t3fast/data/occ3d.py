@@ -21,12 +21,13 @@ Each scene's list is time ordered (2 Hz key frames). Keys read from a frame dict
   and are moved into the ego frame.
 
 Labels are Occ3D's (see ``t3fast.data.classes``). Every problem with a file raises
-``Occ3DFormatError`` naming the file and the problem.
+``Occ3DFormatError`` naming the file and the problem. The info pickle is read without running
+code from it (plain data and numpy arrays only); scene names and tokens must be plain folder
+names, and poses finite with unit quaternions.
 """
 
 from __future__ import annotations
 
-import pickle
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -35,8 +36,10 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from t3fast.data import classes as C
+from t3fast.data.safe_pickle import load_restricted
 from t3fast.data.sample import PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
 from t3fast.errors import DataFormatError
+from t3fast.paths import check_name, inside
 
 LABEL_KEYS = ("semantics", "mask_lidar", "mask_camera")
 
@@ -55,8 +58,8 @@ NAME_TO_CLASS = {
 }
 
 
-class Occ3DFormatError(DataFormatError):
-    """A dataset file is missing or malformed; the message names the file and the problem."""
+#: A dataset file is missing, malformed or unsafe; the message names the file and the problem.
+Occ3DFormatError = DataFormatError
 
 
 def read_labels(path: str | Path) -> dict[str, np.ndarray]:
@@ -94,26 +97,66 @@ def read_labels(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
-    """Read an info pickle and return ``{scene_name: [frame, ...]}`` after checking its structure."""
+    """Read an info pickle and return ``{scene_name: [frame, ...]}`` after checking its structure.
+
+    The file is read with :func:`~t3fast.data.safe_pickle.load_restricted` (plain data and
+    numpy arrays only, no code). Scene names and tokens must be plain folder names, and every
+    frame's poses finite with unit quaternions.
+    """
     path = Path(path)
     if not path.is_file():
         raise Occ3DFormatError(f"{path}: file not found")
-    try:
-        with open(path, "rb") as f:
-            data = pickle.load(f)
-    except Exception as exc:  # any unpickling failure means the file is not an info pickle
-        raise Occ3DFormatError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from exc
+    data = load_restricted(path)
     if not isinstance(data, dict) or "infos" not in data:
         raise Occ3DFormatError(f"{path}: expected a dict with key 'infos'")
     infos = data["infos"]
     if not isinstance(infos, dict):
         raise Occ3DFormatError(f"{path}: 'infos' must map scene names to lists of frames, got {type(infos).__name__}")
     for scene, frames in infos.items():
+        check_name(scene, f"{path}: scene name")
+        if not isinstance(frames, (list, tuple)):
+            raise Occ3DFormatError(f"{path}: scene {scene!r} must be a list of frames, got {type(frames).__name__}")
+        tokens: set[str] = set()
         for k, frame in enumerate(frames):
+            where = f"{path}: scene {scene!r} frame {k}"
+            if not isinstance(frame, dict):
+                raise Occ3DFormatError(f"{where} must be a dict, got {type(frame).__name__}")
             for key in ("token", "ego2global_translation", "ego2global_rotation"):
                 if key not in frame:
-                    raise Occ3DFormatError(f"{path}: scene {scene!r} frame {k} has no {key!r}")
+                    raise Occ3DFormatError(f"{where} has no {key!r}")
+            token = check_name(frame["token"], f"{where}: token")
+            if token in tokens:
+                raise Occ3DFormatError(f"{where}: token {token!r} appears twice in the scene")
+            tokens.add(token)
+            _check_pose(frame, "ego2global", where)
+            if "lidar2ego_rotation" in frame:
+                _check_pose(frame, "lidar2ego", where)
     return infos
+
+
+#: how far from 1 a quaternion's norm may be (float32 round-off is ~1e-7)
+QUATERNION_TOLERANCE = 1e-3
+
+
+def _check_pose(frame: dict[str, Any], prefix: str, where: str) -> None:
+    """``<prefix>_translation`` must be 3 finite numbers and ``<prefix>_rotation`` a unit quaternion."""
+    _finite_vector(frame.get(f"{prefix}_translation", np.zeros(3)), 3, f"{prefix}_translation", where)
+    rotation = _finite_vector(frame[f"{prefix}_rotation"], 4, f"{prefix}_rotation", where)
+    norm = float(np.linalg.norm(rotation))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise Occ3DFormatError(f"{where}: {prefix + '_rotation'!r} is not a unit quaternion (norm {norm:.6g})")
+
+
+def _finite_vector(value: Any, size: int, key: str, where: str) -> np.ndarray:
+    try:
+        vec = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise Occ3DFormatError(f"{where}: {key!r} is not numeric ({exc})") from exc
+    if vec.shape != (size,):
+        raise Occ3DFormatError(f"{where}: {key!r} has shape {vec.shape}, expected ({size},)")
+    if not np.all(np.isfinite(vec)):
+        raise Occ3DFormatError(f"{where}: {key!r} has non-finite values {vec.tolist()}")
+    return vec
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -189,7 +232,8 @@ class Occ3DNuScenes(Dataset):
         return len(self.index)
 
     def label_path(self, scene: str, token: str) -> Path:
-        return self.root / "gts" / scene / token / "labels.npz"
+        """``<root>/gts/<scene>/<token>/labels.npz``; the names must not leave ``gts/``."""
+        return inside(self.root / "gts", check_name(scene, "scene name"), check_name(token, "token"), "labels.npz")
 
     def __getitem__(self, index: int) -> DrivingSample:
         if not 0 <= index < len(self):
@@ -221,6 +265,10 @@ class Occ3DNuScenes(Dataset):
             raise Occ3DFormatError(
                 f"{self.info_path}: scene {scene!r} frame {start + PRESENT}: 'gt_ego_fut_trajs' has shape "
                 f"{traj.shape}, expected (6, 2)"
+            )
+        if not np.all(np.isfinite(traj)):
+            raise Occ3DFormatError(
+                f"{self.info_path}: scene {scene!r} frame {start + PRESENT}: 'gt_ego_fut_trajs' has non-finite values"
             )
         masks = np.asarray(frame.get("gt_ego_fut_masks", np.ones(6)))
         if not np.all(masks > 0):

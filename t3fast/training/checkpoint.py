@@ -9,6 +9,12 @@ from typing import Any
 
 import torch
 
+from t3fast.errors import CheckpointError
+
+#: checkpoint kinds, named after the command that writes them
+AUTOENCODER = "stage-1 autoencoder checkpoint (from `t3fast train-ae`)"
+WORLD_MODEL = "stage-2 world model checkpoint (from `t3fast train-wm`)"
+
 
 def save_checkpoint(state: dict[str, Any], path: str | Path) -> None:
     """Write ``state`` with ``torch.save`` so that ``path`` holds either the old or the new file.
@@ -38,6 +44,45 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device | None = 
     tensors, numbers, strings and containers of them.
     """
     return torch.load(path, map_location=map_location, weights_only=True)
+
+
+def checkpoint_kind(state: Any) -> str | None:
+    """:data:`AUTOENCODER`, :data:`WORLD_MODEL`, or None for anything else (e.g. a plain state_dict)."""
+    if not (isinstance(state, dict) and isinstance(state.get("model"), dict) and isinstance(state.get("config"), dict)):
+        return None
+    task = state["config"].get("task")
+    if not isinstance(task, dict):
+        return None
+    if "autoencoder_ckpt" in task:  # only stage 2 points at a stage-1 checkpoint
+        return WORLD_MODEL
+    if "decoder_backend" in task:
+        return AUTOENCODER
+    return None
+
+
+def read_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
+    """:func:`load_checkpoint` for a command that needs a checkpoint of ``kind``.
+
+    Raises :class:`~t3fast.errors.CheckpointError` saying what the file is when it is missing,
+    unreadable, not a t3fast checkpoint, or a checkpoint of the other stage.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        state = load_checkpoint(path)
+    except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
+    found = checkpoint_kind(state)
+    if found is None:
+        raise CheckpointError(
+            f"{path}: not a t3fast checkpoint (no model weights with their config; a plain state_dict "
+            f"cannot be used); this command needs a {kind}"
+        )
+    if found != kind:
+        raise CheckpointError(f"{path}: this is a {found}; this command needs a {kind}")
+    return state
 
 
 def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16) -> int:

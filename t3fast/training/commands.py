@@ -11,7 +11,7 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train-ae", help="pretrain the triplane autoencoder (stage 1)")
     train.add_argument("--config", default="small", help="preset (small, small-bev, paper) or a YAML/JSON file")
     train.add_argument("--data", choices=["synthetic", "occ3d"], help="frame source (overrides the config)")
-    train.add_argument("--resume", action="store_true", help="continue from OUT_DIR/last.pt")
+    _add_run_flags(train)
     train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=500 model.channels=16")
     train.set_defaults(func=_train_ae)
 
@@ -20,7 +20,7 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
                        help="preset (small, small-no-delta, small-single-scale, small-bev, paper) or a YAML/JSON file")
     world.add_argument("--ae", help="stage-1 checkpoint (overrides autoencoder_ckpt)")
     world.add_argument("--data", choices=["synthetic", "occ3d"], help="window source (overrides the config)")
-    world.add_argument("--resume", action="store_true", help="continue from OUT_DIR/last.pt")
+    _add_run_flags(world)
     world.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=100 loss.rollout_steps=6")
     world.set_defaults(func=_train_wm)
 
@@ -33,12 +33,35 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     evaluate.set_defaults(func=_eval_ae)
 
 
+def _add_run_flags(p: argparse.ArgumentParser) -> None:
+    runs = p.add_mutually_exclusive_group()
+    runs.add_argument("--resume", action="store_true", help="continue the run in OUT_DIR from its last.pt")
+    runs.add_argument("--overwrite", action="store_true",
+                      help="replace the run already in OUT_DIR (without it a non-empty OUT_DIR is refused)")
+
+
+def _config(cls, presets, preset, name: str, overrides: list[str]):
+    """``cls`` from a preset name or a YAML/JSON file, then the overrides; the run's out_dir is
+    checked before anything is built."""
+    from t3fast.errors import ConfigError
+    from t3fast.training.config import config_to_dict, load_config
+    from t3fast.training.run_dir import check_out_dir
+
+    if name in presets:
+        base = preset(name)
+    elif Path(name).is_file():
+        base = load_config(cls, name)
+    else:
+        raise ConfigError(f"--config {name!r} is neither a preset ({', '.join(presets)}) nor a YAML/JSON file")
+    cfg = load_config(cls, config_to_dict(base), overrides)
+    check_out_dir(cfg.train.out_dir, cfg.train.resume, cfg.train.resume_from, cfg.train.overwrite)
+    return cfg
+
+
 def _stage1_config(name: str, overrides: list[str]):
     from t3fast.training.autoencoder import PRESETS, Stage1Config, preset
-    from t3fast.training.config import config_to_dict, load_config
 
-    base = preset(name) if name in PRESETS else load_config(Stage1Config, name)
-    return load_config(Stage1Config, config_to_dict(base), overrides)
+    return _config(Stage1Config, PRESETS, preset, name, overrides)
 
 
 def _overrides(args: argparse.Namespace) -> list[str]:
@@ -48,6 +71,8 @@ def _overrides(args: argparse.Namespace) -> list[str]:
         overrides.append(f"data.source={args.data}")
     if args.resume:
         overrides.append("train.resume=true")
+    if args.overwrite:
+        overrides.append("train.overwrite=true")
     return overrides
 
 
@@ -80,12 +105,10 @@ def _train_ae(args: argparse.Namespace) -> int:
 
 
 def _train_wm(args: argparse.Namespace) -> int:
-    from t3fast.training.config import config_to_dict, load_config
     from t3fast.training.world_model import PRESETS, Stage2Config, WorldModelTask, preset
 
     overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
-    base = preset(args.config) if args.config in PRESETS else load_config(Stage2Config, args.config)
-    task = WorldModelTask(load_config(Stage2Config, config_to_dict(base), overrides))
+    task = WorldModelTask(_config(Stage2Config, PRESETS, preset, args.config, overrides))
     return _fit(task, task.cfg, ("encoder", "forecaster", "planner", "decoder"), f"world model {args.config}")
 
 
@@ -94,11 +117,11 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.evaluation.reconstruction import evaluate_reconstruction
     from t3fast.models.autoencoder import TriplaneAutoencoder
     from t3fast.training.autoencoder import Stage1Config
-    from t3fast.training.checkpoint import load_checkpoint
+    from t3fast.training.checkpoint import AUTOENCODER, read_checkpoint
     from t3fast.training.config import load_config
     from t3fast.training.distributed import default_device
 
-    state = load_checkpoint(args.ckpt)
+    state = read_checkpoint(args.ckpt, AUTOENCODER)
     cfg = load_config(Stage1Config, state["config"]["task"])
     model = TriplaneAutoencoder(cfg.model)
     model.load_state_dict(state["model"])

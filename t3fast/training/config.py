@@ -30,14 +30,14 @@ from typing import Any, TypeVar
 
 import yaml
 
+from t3fast.errors import ConfigError
+
+__all__ = ["ConfigError", "config_to_dict", "load_config", "save_config"]
+
 T = TypeVar("T")
 
 _TRUE = {"true", "yes", "on", "1"}
 _FALSE = {"false", "no", "off", "0"}
-
-
-class ConfigError(ValueError):
-    """A configuration key or value that does not fit the dataclass."""
 
 
 def load_config(
@@ -91,13 +91,14 @@ def _read_source(source: str | Path | Mapping[str, Any] | None) -> dict[str, Any
     if isinstance(source, Mapping):
         return _deep_copy_dict(source)
     path = Path(source)
-    text = path.read_text()
-    if path.suffix == ".json":
-        data = json.loads(text)
-    elif path.suffix in (".yaml", ".yml"):
-        data = yaml.safe_load(text)
-    else:
+    if path.suffix not in (".json", ".yaml", ".yml"):
         raise ConfigError(f"config file {path} must end in .yaml, .yml or .json")
+    text = path.read_text()
+    try:
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except (ValueError, yaml.YAMLError) as exc:
+        reason = " ".join(str(exc).split())
+        raise ConfigError(f"config file {path} is not valid {path.suffix[1:].upper()}: {reason}") from exc
     if data is None:  # an empty YAML file
         return {}
     if not isinstance(data, dict):

@@ -45,17 +45,20 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
+from t3fast.errors import ConfigError
 from t3fast.training.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.training.config import config_to_dict
 from t3fast.training.distributed import (
     all_gather_object,
     all_reduce_mean,
     any_rank,
+    barrier,
     init_distributed,
     is_main,
     rank,
     world_size,
 )
+from t3fast.training.run_dir import check_out_dir, clear_run
 from t3fast.training.schedule import warmup_cosine
 
 log = logging.getLogger(__name__)
@@ -118,9 +121,18 @@ class TrainConfig:
     num_workers: int = 0  # DataLoader worker processes
     out_dir: str = "runs/train"
     tensorboard: bool = True  # used only if torch.utils.tensorboard imports
-    resume: bool = False  # continue from out_dir/last.pt if it exists
+    resume: bool = False  # continue from out_dir/last.pt (must exist)
     resume_from: str | None = None  # continue from this checkpoint (must exist)
+    overwrite: bool = False  # replace the run already in out_dir (a new run needs an empty out_dir)
     device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu"
+
+    def __post_init__(self) -> None:
+        """Reject counts that would crash or silently do nothing later (e.g. a zero batch)."""
+        at_least = {"steps": 1, "batch_size": 1, "warmup_steps": 0, "log_every": 0, "eval_every": 0,
+                    "ckpt_every": 0, "num_workers": 0}
+        for key, low in at_least.items():
+            if getattr(self, key) < low:
+                raise ConfigError(f"train.{key} must be at least {low}, got {getattr(self, key)}")
 
 
 class ResumableBatchSampler(Sampler[list[int]]):
@@ -173,7 +185,11 @@ class Trainer:
         self.device = init_distributed(cfg.device)
         self.rank, self.world = rank(), world_size()
         self.out_dir = Path(cfg.out_dir)
+        check_out_dir(self.out_dir, cfg.resume, cfg.resume_from, cfg.overwrite)
+        barrier()  # every rank has looked at out_dir before rank 0 writes to it
         if is_main():
+            if cfg.overwrite:
+                clear_run(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
 
         _seed_everything(cfg.seed)  # the same initial weights on every rank
@@ -419,12 +435,8 @@ class Trainer:
             if not path.is_file():
                 raise FileNotFoundError(f"resume_from checkpoint {path} does not exist")
             return path
-        path = self.out_dir / "last.pt"
-        if self.cfg.resume and path.is_file():
-            return path
-        if self.cfg.resume:
-            log.info("no %s yet: starting from step 0", path)
-        return None
+        # check_out_dir has made sure out_dir/last.pt exists when resuming
+        return self.out_dir / "last.pt" if self.cfg.resume else None
 
     # ---- Ctrl-C ---------------------------------------------------------------------------
 

@@ -34,7 +34,7 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models.config import WORLD_MODELS, AutoencoderConfig, WorldModelConfig
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
-from t3fast.training.checkpoint import load_checkpoint
+from t3fast.training.checkpoint import AUTOENCODER, WORLD_MODEL, read_checkpoint
 from t3fast.training.config import config_to_dict, load_config
 from t3fast.training.losses import occupancy_loss
 from t3fast.training.sampling import sample_query_points
@@ -228,7 +228,7 @@ class WorldModelTask:
 
     def __init__(self, cfg: Stage2Config):
         self.cfg = copy.deepcopy(cfg)
-        self._stage1 = load_checkpoint(self.cfg.autoencoder_ckpt)  # read once: config and weights
+        self._stage1 = read_checkpoint(self.cfg.autoencoder_ckpt, AUTOENCODER)  # read once: config and weights
         if self.cfg.autoencoder is None:
             self.cfg.autoencoder = load_config(AutoencoderConfig, self._stage1["config"]["task"]["model"])
         self._val = None
@@ -296,9 +296,7 @@ class WorldModelTask:
 def load_world_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[T3Former, Stage2Config]:
     """A trained world model from a stage-2 checkpoint (``last.pt``/``best.pt`` or an exported
     weights file), in eval mode on ``device``."""
-    state = load_checkpoint(path)
-    if "config" not in state or "task" not in state["config"]:
-        raise ValueError(f"{path}: not a t3fast stage-2 checkpoint (no config)")
+    state = read_checkpoint(path, WORLD_MODEL)
     cfg = load_config(Stage2Config, state["config"]["task"])
     model = build_world_model(cfg)
     model.load_state_dict(state["model"])

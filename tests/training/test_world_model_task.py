@@ -142,9 +142,10 @@ def test_demo_runs_on_given_checkpoints(world_ckpt, tmp_path, capsys):
     assert "demo finished" in capsys.readouterr().out
 
 
-def test_stage2_rejects_a_missing_autoencoder(tmp_path):
-    with pytest.raises(FileNotFoundError):
-        main(["train-wm", "--config", "small", "--ae", str(tmp_path / "nope.pt"), f"train.out_dir={tmp_path}"])
+def test_stage2_rejects_a_missing_autoencoder(tmp_path, capsys):
+    ae = tmp_path / "nope.pt"
+    assert main(["train-wm", "--config", "small", "--ae", str(ae), f"train.out_dir={tmp_path / 'wm'}"]) == 1
+    assert capsys.readouterr().err == f"t3fast train-wm: {ae}: checkpoint not found\n"
 
 
 def test_rollout_steps_out_of_range(world_ckpt):

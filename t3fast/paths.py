@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
-from t3fast.errors import DataFormatError
+from t3fast.errors import DataFormatError, UsageError
 
 
 def check_name(name: object, what: str) -> str:
@@ -33,4 +33,20 @@ def inside(root: str | Path, *parts: str) -> Path:
     path = root.joinpath(*parts)
     if not path.resolve().is_relative_to(root.resolve()):
         raise DataFormatError(f"{path} would lie outside {root}")
+    return path
+
+
+def output_dir(path: str | Path) -> Path:
+    """``path`` as an output folder: absent (it will be created) or a folder, never a file.
+
+    Checked before a command does any work, so a typo does not cost a model run.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--out {path} is a file, not a folder")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise UsageError(f"--out {path}: {parent} is a file, not a folder")
+            break
     return path

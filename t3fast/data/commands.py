@@ -8,6 +8,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from t3fast.errors import UsageError
+
 
 def add_data_commands(sub: argparse._SubParsersAction) -> None:
     """Register ``data export-synthetic | stats | render`` on the root command's sub-parsers."""
@@ -51,7 +53,7 @@ def _dataset(args: argparse.Namespace, stride: int):
         from t3fast.data.occ3d import Occ3DNuScenes
 
         if args.info is None:
-            raise SystemExit("--root needs --info")
+            raise UsageError("--root needs --info")
         return Occ3DNuScenes(args.root, args.info, stride=stride)
     from t3fast.data.synthetic.dataset import SyntheticDriving
 
@@ -134,6 +136,8 @@ def _render(args: argparse.Namespace) -> int:
     from t3fast.viz import save_sample_png
 
     ds = _dataset(args, 1)
+    if not 0 <= args.index < len(ds):
+        raise UsageError(f"--index {args.index} is out of range: the data has {len(ds)} windows")
     frames = [int(f) for f in args.frames.split(",")]
     path = save_sample_png(ds[args.index], args.out, frames, args.scale, args.mask)
     print(f"wrote {path}")

@@ -9,6 +9,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from t3fast.cli_args import non_negative_int, positive_int
+from t3fast.errors import DataFormatError, T3fastError, UsageError
+from t3fast.paths import check_name, inside, output_dir
 from t3fast.training.distributed import default_device
 
 
@@ -17,8 +20,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate.add_argument("ckpt", type=Path, nargs="+",
                           help="stage-2 checkpoints; each row is named after what it is (t3former, no_delta, ...)")
     evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
-    evaluate.add_argument("--scenes", type=int, default=10, help="synthetic scenes of the split")
-    evaluate.add_argument("--stride", type=int, default=8, help="frames between evaluated windows of a scene")
+    evaluate.add_argument("--scenes", type=positive_int, default=10, help="synthetic scenes of the split")
+    evaluate.add_argument("--stride", type=positive_int, default=8, help="frames between evaluated windows of a scene")
     evaluate.add_argument("--mask", action="store_true", help="score only voxels in mask_camera")
     evaluate.add_argument("--no-baselines", action="store_true", help="skip Copy&Paste and constant velocity")
     evaluate.add_argument("--out", type=Path, help="write metrics.json and metrics.md here")
@@ -29,8 +32,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     forecast.add_argument("--info", type=Path, help="info pickle (default: the only *.pkl in --data)")
     forecast.add_argument("--ckpt", type=Path, required=True, help="stage-2 checkpoint")
     forecast.add_argument("--out", type=Path, required=True)
-    forecast.add_argument("--stride", type=int, default=6, help="frames between forecast windows of a scene")
-    forecast.add_argument("--pictures", type=int, default=4, help="windows that also get PNG/GIF pictures")
+    forecast.add_argument("--stride", type=positive_int, default=6, help="frames between forecast windows of a scene")
+    forecast.add_argument("--pictures", type=non_negative_int, default=4, help="windows that also get PNG/GIF pictures")
     forecast.set_defaults(func=_forecast)
 
 
@@ -53,9 +56,13 @@ def _eval(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
 
+    if args.out:
+        output_dir(args.out)
     device = default_device()
     models = load_models(args.ckpt, device)
     dataset = SyntheticDriving(args.split, args.scenes, stride=args.stride)
+    if len(dataset) == 0:
+        raise UsageError(f"nothing to evaluate: {args.scenes} {args.split} scenes hold no 11-frame window")
     results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device,
                                baselines=not args.no_baselines, use_mask=args.mask)
     title = f"synthetic {args.split}: {args.scenes} scenes, {len(dataset)} windows, device {device}"
@@ -69,8 +76,16 @@ def _eval(args: argparse.Namespace) -> int:
 def _find_info(data: Path) -> Path:
     found = sorted(data.glob("*.pkl"))
     if len(found) != 1:
-        raise SystemExit(f"t3fast forecast: found {len(found)} info pickles in {data}; pass --info")
+        raise UsageError(f"found {len(found)} info pickles in {data}; pass --info")
     return found[0]
+
+
+def _trajectory_json(plan: np.ndarray, where: str) -> str:
+    """``{"planned": [[x, y], ...], "seconds": [...]}``; NaN is not JSON, so it is an error."""
+    if not np.all(np.isfinite(plan)):
+        raise T3fastError(f"{where}: the model planned a non-finite trajectory {plan.tolist()}")
+    seconds = [0.5 * (k + 1) for k in range(len(plan))]
+    return json.dumps({"planned": plan.tolist(), "seconds": seconds}, allow_nan=False)
 
 
 @torch.no_grad()
@@ -82,22 +97,29 @@ def _forecast(args: argparse.Namespace) -> int:
     from t3fast.training.world_model import load_world_model
     from t3fast.viz import save_forecast_pictures
 
+    if not args.data.is_dir():
+        raise UsageError(f"--data {args.data} is not a folder")
+    out_root = output_dir(args.out)
+    info = args.info or _find_info(args.data)
+    # the info file and the arguments are checked before the model is loaded or run
+    dataset = Occ3DNuScenes(args.data, info, stride=args.stride)
+    if len(dataset) == 0:
+        raise DataFormatError(f"{info}: nothing to forecast: no scene has the 11 frames a window needs")
     device = default_device()
     model, _ = load_world_model(args.ckpt, device)
-    dataset = Occ3DNuScenes(args.data, args.info or _find_info(args.data), stride=args.stride)
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):
         sample = dataset[i]
         batch = collate_samples([sample]).to(device)
         out = model.forecast(batch.past_occ, batch.past_actions)
         token = dataset.infos[sample.scene][sample.start + PRESENT]["token"]
-        folder = args.out / sample.scene / token
+        folder = inside(out_root, check_name(sample.scene, "scene name"), check_name(token, "token"))
+        plan = out.trajectory[0].cpu().numpy()
+        trajectory = _trajectory_json(plan, f"scene {sample.scene!r} token {token!r}")  # before writing anything
         labels = out.labels[0].cpu().numpy()
         for k, frame in enumerate(labels):
             (folder / f"future_{k + 1}").mkdir(parents=True, exist_ok=True)
             np.savez_compressed(folder / f"future_{k + 1}" / "labels.npz", semantics=frame)
-        plan = out.trajectory[0].cpu().numpy()
-        seconds = [0.5 * (k + 1) for k in range(len(plan))]
-        (folder / "trajectory.json").write_text(json.dumps({"planned": plan.tolist(), "seconds": seconds}))
+        (folder / "trajectory.json").write_text(trajectory)
         if i < args.pictures:
             save_forecast_pictures(folder / "forecast", sample.past_occ.numpy(), labels, sample.future_occ.numpy(),
                                    plan, sample.trajectory.numpy())

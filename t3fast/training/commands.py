@@ -6,6 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
+from t3fast.cli_args import positive_int
+from t3fast.errors import UsageError
+
 
 def add_training_commands(sub: argparse._SubParsersAction) -> None:
     train = sub.add_parser("train-ae", help="pretrain the triplane autoencoder (stage 1)")
@@ -27,8 +30,8 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     evaluate = sub.add_parser("eval-ae", help="reconstruction table of a stage-1 checkpoint")
     evaluate.add_argument("ckpt", type=Path, help="checkpoint (best.pt / last.pt)")
     evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
-    evaluate.add_argument("--scenes", type=int, default=10, help="synthetic scenes of the split")
-    evaluate.add_argument("--stride", type=int, default=1, help="score every k-th frame")
+    evaluate.add_argument("--scenes", type=positive_int, default=10, help="synthetic scenes of the split")
+    evaluate.add_argument("--stride", type=positive_int, default=1, help="score every k-th frame")
     evaluate.add_argument("--out", type=Path, help="write the results as JSON here")
     evaluate.set_defaults(func=_eval_ae)
 
@@ -121,6 +124,8 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.training.config import load_config
     from t3fast.training.distributed import default_device
 
+    if args.out is not None and args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")
     state = read_checkpoint(args.ckpt, AUTOENCODER)
     cfg = load_config(Stage1Config, state["config"]["task"])
     model = TriplaneAutoencoder(cfg.model)

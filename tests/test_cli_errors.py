@@ -1,0 +1,104 @@
+"""Expected errors print one line, ``t3fast <command>: <message>``, and exit non-zero; bugs
+keep their traceback; ``--debug`` shows it for expected errors too."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from t3fast.cli import main
+from t3fast.training.autoencoder import Stage1Config
+from t3fast.training.checkpoint import save_checkpoint
+from t3fast.training.config import config_to_dict
+
+SHIPPED_WM = "t3fast/checkpoints/wm-small.pt"
+
+
+def one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err.rstrip("\n")
+
+
+@pytest.fixture
+def stage1_ckpt(tmp_path):
+    path = tmp_path / "ae.pt"
+    save_checkpoint({"model": {}, "config": {"task": config_to_dict(Stage1Config())}, "step": 0}, path)
+    return path
+
+
+def test_checkpoint_kinds_are_named(tmp_path, stage1_ckpt, capsys):
+    assert main(["eval", str(stage1_ckpt)]) == 1
+    assert one_line(capsys) == (
+        f"t3fast eval: {stage1_ckpt}: this is a stage-1 autoencoder checkpoint (from `t3fast train-ae`); "
+        "this command needs a stage-2 world model checkpoint (from `t3fast train-wm`)"
+    )
+    assert main(["eval-ae", SHIPPED_WM]) == 1
+    assert "this is a stage-2 world model checkpoint" in one_line(capsys)
+
+    plain = tmp_path / "state_dict.pt"
+    torch.save({"weight": torch.zeros(2)}, plain)
+    assert main(["eval", str(plain)]) == 1
+    assert "not a t3fast checkpoint" in one_line(capsys)
+
+    text = tmp_path / "notes.pt"
+    text.write_text("hello\n")
+    assert main(["eval", str(text)]) == 1
+    assert one_line(capsys).startswith(f"t3fast eval: {text}: not a readable checkpoint (")
+
+    assert main(["forecast", "--data", str(tmp_path), "--info", str(tmp_path / "x.pkl"), "--ckpt", "x.pt",
+                 "--out", str(tmp_path / "o")]) == 1
+    assert one_line(capsys) == f"t3fast forecast: {tmp_path / 'x.pkl'}: file not found"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["eval", SHIPPED_WM, "--scenes", "0"], "argument --scenes: must be at least 1, got 0"),
+        (["eval", SHIPPED_WM, "--stride", "0"], "argument --stride: must be at least 1, got 0"),
+        (["eval-ae", SHIPPED_WM, "--stride", "x"], "argument --stride: expected an integer, got 'x'"),
+        (["forecast", "--data", ".", "--ckpt", "c", "--out", "o", "--stride", "-1"],
+         "argument --stride: must be at least 1, got -1"),
+        (["forecast", "--data", ".", "--ckpt", "c", "--out", "o", "--pictures", "-1"],
+         "argument --pictures: must be at least 0, got -1"),
+    ],
+)
+def test_bad_numbers_are_refused_by_the_parser(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_out_must_be_a_folder(tmp_path, capsys):
+    out = tmp_path / "file.txt"
+    out.write_text("")
+    assert main(["eval", SHIPPED_WM, "--out", str(out)]) == 2  # before any model runs
+    assert one_line(capsys) == f"t3fast eval: --out {out} is a file, not a folder"
+    assert main(["forecast", "--data", str(tmp_path), "--ckpt", SHIPPED_WM, "--out", str(out / "sub")]) == 2
+    assert one_line(capsys) == f"t3fast forecast: --out {out / 'sub'}: {out} is a file, not a folder"
+    assert main(["forecast", "--data", str(out), "--ckpt", SHIPPED_WM, "--out", str(tmp_path)]) == 2
+    assert one_line(capsys) == f"t3fast forecast: --data {out} is not a folder"
+    assert main(["forecast", "--data", str(tmp_path), "--ckpt", SHIPPED_WM, "--out", str(tmp_path / "o")]) == 2
+    assert one_line(capsys) == f"t3fast forecast: found 0 info pickles in {tmp_path}; pass --info"
+
+
+def test_debug_shows_the_traceback(tmp_path, capsys):
+    text = tmp_path / "notes.pt"
+    text.write_text("hello\n")
+    for argv in (["--debug", "eval", str(text)], ["eval", str(text), "--debug"]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert "Traceback" in err and "CheckpointError" in err
+        assert err.splitlines()[-1].startswith(f"t3fast eval: {text}: not a readable checkpoint (")
+
+
+def test_bugs_keep_their_traceback(monkeypatch):
+    import t3fast.evaluation.commands as commands
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(commands, "load_models", broken)
+    with pytest.raises(RuntimeError, match="a bug"):
+        main(["eval", SHIPPED_WM])

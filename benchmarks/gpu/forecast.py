@@ -1,0 +1,188 @@
+"""The world model's forecasting step at batch 1: forecaster, planner and decoding the 6 future
+frames to labels, from the encoded past frames (untrained weights: speed does not depend on
+them). One JSON line per (size, mode) is appended to ``--out`` as soon as it is measured.
+
+Modes:
+  eager            the compiled t3fast operators, plain PyTorch around them
+  eager-reference  the pure-PyTorch references of the decoder and delta fusion instead
+  cuda-graph       ``eager`` captured once in a CUDA graph and replayed (CUDA only)
+  compile          ``torch.compile(mode="reduce-overhead")``: Inductor plus CUDA graphs on a GPU
+                   (``mode="default"`` on the CPU)
+
+Each row: median and 90th-percentile step time, FPS (steps per second, 1 / median), and the
+peak memory of the mode (``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
+the model was built: weights, inputs, activations and graph pools).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gc
+import json
+import math
+import statistics
+import sys
+import time
+import traceback
+from copy import deepcopy
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
+
+
+def sizes() -> dict:
+    """Named (autoencoder, world model) configs: the presets, and ``tiny`` (``small`` on a
+    32 x 32 x 8 grid) for dry runs."""
+    from t3fast.models.config import WORLD_MODELS, named_config
+
+    out = {name: (named_config(name), deepcopy(WORLD_MODELS[name])) for name in WORLD_MODELS}
+    out["tiny"] = (replace(named_config("small"), grid=(32, 32, 8)), deepcopy(WORLD_MODELS["small"]))
+    return out
+
+
+def build(size: str, device: torch.device):
+    """Untrained T3Former of a named size, its encoded past (5 frames) and past actions."""
+    from t3fast.models.world_model import T3Former
+
+    torch.manual_seed(0)
+    ae, world = sizes()[size]
+    model = T3Former.from_config(ae, world).to(device).eval()
+    g = torch.Generator().manual_seed(0)
+    occupancy = torch.randint(0, ae.num_classes, (1, world.history, *ae.grid), generator=g, dtype=torch.uint8)
+    past = model.encode_sequence(occupancy.to(device))
+    actions = (torch.randn(1, world.past_actions, 2, generator=g) * 0.5).to(device)
+    return model, past, actions
+
+
+@contextlib.contextmanager
+def reference_ops(model):
+    """The decoder and the forecaster's delta fusion on the pure-PyTorch references."""
+    import t3fast.models.forecaster as forecaster_module
+    from t3fast.ops import reference
+
+    fused_delta_fuse, backend = forecaster_module.delta_fuse, model.decoder.backend
+    forecaster_module.delta_fuse, model.decoder.backend = reference.delta_fuse, "reference"
+    try:
+        yield
+    finally:
+        forecaster_module.delta_fuse, model.decoder.backend = fused_delta_fuse, backend
+
+
+def step_function(model, past, actions, mode: str, device: torch.device):
+    """A no-argument callable running one forecasting step, and a context to run it in."""
+
+    def step():
+        out = model.forecast_from_triplanes(past, actions)
+        return out.labels, out.actions
+
+    if mode in ("eager", "eager-reference"):
+        return step, reference_ops(model) if mode == "eager-reference" else contextlib.nullcontext()
+    if mode == "compile":
+        compiled = torch.compile(step, mode="reduce-overhead" if device.type == "cuda" else "default")
+        return compiled, contextlib.nullcontext()
+    if mode == "cuda-graph":
+        if device.type != "cuda":
+            raise RuntimeError("cuda-graph needs a GPU")
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):  # warm-up off the default stream, as capture requires
+            for _ in range(3):
+                step()
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            step()
+        return graph.replay, contextlib.nullcontext()
+    raise ValueError(f"unknown mode {mode!r}")
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def measure(fn, device: torch.device, warmup: int, min_iters: int, max_iters: int, seconds: float) -> list[float]:
+    """Step times (s): ``warmup`` untimed calls, then calls until ``seconds`` have passed and at
+    least ``min_iters`` (at most ``max_iters``) were timed, each ended by a synchronisation."""
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    times: list[float] = []
+    while len(times) < max_iters and (len(times) < min_iters or sum(times) < seconds):
+        start = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def run_row(size: str, mode: str, device: torch.device, quick: bool) -> dict:
+    row: dict = {"size": size, "mode": mode, "device": str(device), "batch": 1}
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+        base = torch.cuda.memory_allocated(device)
+    model, past, actions = build(size, device)
+    row["params_m"] = sum(p.numel() for p in model.parameters()) / 1e6
+    row["weights_mb"] = sum(p.numel() * p.element_size() for p in model.parameters()) / 2**20
+    start = time.perf_counter()
+    fn, context = step_function(model, past, actions, mode, device)
+    with context, torch.no_grad():
+        warmup = 1 if quick else (3 if mode == "compile" else 2)
+        times = measure(fn, device, warmup, min_iters=2 if quick else 10, max_iters=2 if quick else 200,
+                        seconds=0.0 if quick else 2.0)
+    row["setup_s"] = time.perf_counter() - start - sum(times)  # capture / compilation and warm-up
+    row["iters"] = len(times)
+    row["median_ms"] = statistics.median(times) * 1e3
+    row["p90_ms"] = sorted(times)[math.ceil(0.9 * len(times)) - 1] * 1e3  # nearest rank
+    row["fps"] = 1e3 / row["median_ms"]
+    if device.type == "cuda":
+        row["peak_allocated_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
+        row["peak_reserved_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
+    del fn, model, past, actions
+    if mode == "compile":
+        torch._dynamo.reset()  # drop the compiled code and what its guards hold
+    gc.collect()
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu.forecast", description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
+    parser.add_argument("--sizes", default="small,paper", help="comma-separated world model sizes")
+    parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, from {MODES}")
+    parser.add_argument("--quick", action="store_true", help="two timed steps per row")
+    parser.add_argument("--out", type=Path, required=True, help="JSON lines file (appended to)")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+    sizes, modes = args.sizes.split(","), args.modes.split(",")
+    unknown = [m for m in modes if m not in MODES]
+    if unknown:
+        parser.error(f"unknown modes {unknown}; expected some of {MODES}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    failures = 0
+    for mode in modes:  # every size of a mode before the next (slower to set up) mode
+        for size in sizes:
+            try:
+                row = run_row(size, mode, device, args.quick)
+                print(f"{size:>6} {mode:<16} {row['median_ms']:9.2f} ms {row['fps']:8.1f} FPS"
+                      + (f" {row['peak_allocated_mb']:8.0f} MB" if "peak_allocated_mb" in row else ""), flush=True)
+            except Exception as exc:
+                traceback.print_exc()
+                failures += 1
+                row = {"size": size, "mode": mode, "device": str(device), "error": f"{type(exc).__name__}: {exc}"}
+                torch._dynamo.reset()
+                gc.collect()
+            with args.out.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""What the machine and the build are: ``python -m benchmarks.gpu.probe env|build --out FILE``.
+
+``env``: Python, torch, CUDA, cuDNN and NCCL versions, the GPUs torch sees, nvcc and ninja.
+``build``: ``t3fast.build_info()`` plus where ``t3fast`` was imported from; with
+``--expect-cuda`` it exits 1 unless the kernels were built with CUDA and a GPU is visible.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+
+def _command_output(argv: list[str]) -> str | None:
+    if shutil.which(argv[0]) is None:
+        return None
+    try:
+        out = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"error: {exc}"
+    return (out.stdout + out.stderr).strip()
+
+
+def environment() -> dict:
+    import torch
+
+    info = {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "torch_cuda": torch.version.cuda,
+        "cuda_available": torch.cuda.is_available(),
+        "cudnn": torch.backends.cudnn.version() if torch.backends.cudnn.is_available() else None,
+        "nvcc": _command_output(["nvcc", "--version"]),
+        "ninja": _command_output(["ninja", "--version"]),
+        "gpus": [],
+    }
+    if torch.cuda.is_available():
+        try:
+            info["nccl"] = ".".join(map(str, torch.cuda.nccl.version()))
+        except Exception as exc:  # NCCL may be absent from a build
+            info["nccl"] = f"unavailable ({exc})"
+        for index in range(torch.cuda.device_count()):
+            props = torch.cuda.get_device_properties(index)
+            info["gpus"].append({
+                "name": props.name,
+                "capability": f"{props.major}.{props.minor}",
+                "memory_gb": round(props.total_memory / 1e9, 1),
+                "multiprocessors": props.multi_processor_count,
+            })
+    return info
+
+
+def build() -> dict:
+    import torch
+
+    import t3fast
+
+    info = dict(t3fast.build_info())
+    info["imported_from"] = str(Path(t3fast.__file__).resolve().parent)
+    info["gpu_visible"] = torch.cuda.is_available()
+    return info
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu.probe", description=__doc__.splitlines()[0])
+    parser.add_argument("what", choices=["env", "build"])
+    parser.add_argument("--out", type=Path, required=True, help="JSON file to write")
+    parser.add_argument("--expect-cuda", action="store_true", help="fail unless CUDA kernels and a GPU are there")
+    args = parser.parse_args(argv)
+    info = environment() if args.what == "env" else build()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(info, indent=2) + "\n")
+    print(json.dumps(info, indent=2))
+    if args.expect_cuda:
+        ok = info.get("cuda") if args.what == "build" else info.get("cuda_available")
+        if not ok or not info.get("gpu_visible", info.get("cuda_available")):
+            print("expected CUDA kernels and a visible GPU", file=sys.stderr)
+            return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""Markdown tables from the folder a GPU check wrote: ``python -m benchmarks.gpu.report OUTDIR``.
+
+Prints the stages' status, the CUDA test counts, the op benchmarks (fused against reference,
+achieved TFLOP/s and GB/s, fraction of the roofline), the forecasting step (FPS, memory) and
+the training bursts (samples/s). Paste the output into the README, or redirect it to
+``benchmarks/results/gpu/report.md``.
+
+Roofline: every benchmarked op runs in float32 on CUDA cores, so the compute roof is the
+GPU's dense float32 (non-tensor-core) peak; the memory roof is its HBM bandwidth. For a
+workload of F FLOPs and B compulsory bytes taking t seconds the attainable rate is
+``min(P, (F / B) * BW)`` and the table gives ``(F / t) / attainable``. The peaks are looked up
+from the GPU's name (table ``PEAKS``) or given with ``--peak-tflops`` / ``--peak-gbps``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+try:
+    from .run import junit_counts
+except ImportError:  # run as a script: benchmarks/gpu/report.py
+    from run import junit_counts
+
+# name fragment -> (dense fp32 TFLOP/s without tensor cores, dense bf16 tensor TFLOP/s, HBM GB/s);
+# vendor datasheet figures, first match wins (most specific first)
+PEAKS = {
+    "H200": (67.0, 989.0, 4800.0),
+    "H100 PCIe": (51.0, 756.0, 2000.0),
+    "H100 NVL": (60.0, 835.0, 3900.0),
+    "H100": (67.0, 989.0, 3350.0),  # SXM (HBM3)
+    "A100-SXM4-80GB": (19.5, 312.0, 2039.0),
+    "A100 80GB PCIe": (19.5, 312.0, 1935.0),
+    "A100": (19.5, 312.0, 1555.0),  # 40 GB
+    "L40S": (91.6, 362.0, 864.0),
+    "RTX 4090": (82.6, 165.0, 1008.0),
+}
+
+
+def peaks_for(gpu: str | None) -> tuple[str, tuple[float, float, float]] | None:
+    if not gpu:
+        return None
+    for fragment, peaks in PEAKS.items():
+        if fragment.lower() in gpu.lower():
+            return fragment, peaks
+    return None
+
+
+def _read_json(path: Path):
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _fmt(value, spec: str = ".2f", missing: str = "–") -> str:
+    return missing if value is None else format(value, spec)
+
+
+def _table(header: list[str], rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |",
+             "|" + "|".join("---:" if i in right else "---" for i in range(len(header))) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return lines
+
+
+def header_section(out: Path) -> list[str]:
+    env = _read_json(out / "env" / "env.json") or {}
+    build = _read_json(out / "build" / "build_info.json") or {}
+    summary = _read_json(out / "summary.json") or {}
+    gpus = ", ".join(g["name"] for g in env.get("gpus", [])) or "no GPU"
+    lines = [f"**{gpus}**; torch {env.get('torch', '?')}, CUDA {env.get('torch_cuda') or '–'}, "
+             f"NCCL {env.get('nccl') or '–'}, Python {env.get('python', '?')}; "
+             f"kernels built with CUDA: {build.get('cuda', '?')}; commit {summary.get('commit') or '?'}, "
+             f"run {summary.get('started', '?')} ({'dry run, ' if summary.get('quick') else ''}"
+             f"device {summary.get('device', '?')})."]
+    return lines
+
+
+def stages_section(out: Path) -> list[str]:
+    summary = _read_json(out / "summary.json")
+    if summary is None:
+        return ["No summary.json: the run did not start."]
+    rows = [[s["name"], s["status"], _fmt(s.get("seconds"), ".0f"), s.get("detail", "")] for s in summary["stages"]]
+    return _table(["stage", "status", "time (s)", "detail"], rows, {2})
+
+
+def ops_section(out: Path, peaks: tuple[float, float, float] | None) -> list[str]:
+    data = _read_json(out / "ops" / "benchmarks.json")
+    if data is None:
+        return ["No op benchmarks (ops/benchmarks.json missing)."]
+    by_group: dict[str, dict[str, dict]] = {}
+    for bench in data["benchmarks"]:
+        by_group.setdefault(bench["group"], {})[bench["params"]["impl"]] = bench
+    rows = []
+    for group, pair in by_group.items():
+        fused, ref = pair.get("fused"), pair.get("reference")
+        t_f = fused["stats"]["median"] if fused else None
+        t_r = ref["stats"]["median"] if ref else None
+        info = (fused or ref)["extra_info"]
+        flops, nbytes = info.get("flops"), info.get("bytes")
+        tflops = flops / t_f / 1e12 if flops and t_f else None
+        gbps = nbytes / t_f / 1e9 if nbytes and t_f else None
+        roof, bound = None, "–"
+        if peaks and flops and nbytes and t_f:
+            peak_flops, peak_bw = peaks[0] * 1e12, peaks[2] * 1e9
+            attainable = min(peak_flops, flops / nbytes * peak_bw)
+            bound = "compute" if attainable == peak_flops else "memory"
+            roof = 100 * (flops / t_f) / attainable
+        mem = "–"
+        if fused and ref and "peak_mb" in fused["extra_info"] and "peak_mb" in ref["extra_info"]:
+            mem = f"{fused['extra_info']['peak_mb']:.0f} / {ref['extra_info']['peak_mb']:.0f}"
+        rows.append([
+            group, _fmt(t_f and t_f * 1e3, ".3f"), _fmt(t_r and t_r * 1e3, ".3f"),
+            _fmt(t_r / t_f if t_f and t_r else None, ".1f") + ("x" if t_f and t_r else ""),
+            _fmt(flops and flops / 1e9, ".2f"), _fmt(nbytes and nbytes / 1e6, ".1f"),
+            _fmt(tflops, ".2f"), _fmt(gbps, ".0f"), _fmt(flops and nbytes and flops / nbytes, ".1f"),
+            bound, _fmt(roof, ".1f"), mem,
+        ])
+    header = ["workload", "fused (ms)", "reference (ms)", "speedup", "GFLOP", "MB moved", "fused TFLOP/s",
+              "fused GB/s", "FLOP/byte", "bound", "% of roofline", "peak MB fused / ref"]
+    lines = _table(header, rows, set(range(1, 12)) - {9})
+    if peaks:
+        lines += ["", f"Roofline: {peaks[0]:g} TFLOP/s dense fp32 (CUDA cores; {peaks[1]:g} TFLOP/s dense bf16 on "
+                      f"tensor cores, unused by these fp32 ops), {peaks[2] / 1000:g} TB/s HBM. Bytes are compulsory "
+                      "traffic (inputs read once, outputs written once); medians of pytest-benchmark rounds."]
+    else:
+        lines += ["", "No roofline: unknown device peaks (give --peak-tflops and --peak-gbps)."]
+    return lines
+
+
+def forecast_section(out: Path) -> list[str]:
+    rows = _read_jsonl(out / "forecast" / "results.jsonl")
+    if not rows:
+        return ["No forecasting results (forecast/results.jsonl missing)."]
+    body = []
+    for r in rows:
+        if "error" in r:
+            body.append([r["size"], r["mode"], "error", "", "", "", "", r["error"][:80]])
+            continue
+        body.append([r["size"], r["mode"], _fmt(r["median_ms"], ".2f"), _fmt(r["p90_ms"], ".2f"), _fmt(r["fps"], ".1f"),
+                     _fmt(r.get("peak_allocated_mb"), ".0f"), _fmt(r.get("peak_reserved_mb"), ".0f"),
+                     f"{r['params_m']:.2f} M params, set-up {r['setup_s']:.1f} s, {r['iters']} steps timed"])
+    header = ["size", "mode", "median (ms)", "p90 (ms)", "FPS", "peak allocated (MB)", "peak reserved (MB)", "notes"]
+    return _table(header, body, {2, 3, 4, 5, 6}) + [
+        "", "Batch 1, 5 encoded past frames in, 6 future frames out (forecaster + planner + decoding to labels); "
+            "FPS = forecasting steps per second."]
+
+
+def training_section(out: Path) -> list[str]:
+    body = []
+    for stage in ("train_ae", "train_wm"):
+        r = _read_json(out / stage / "result.json")
+        if r is None:
+            body.append([stage, "no result", "", "", "", "", "", ""])
+            continue
+        command = " ".join(r["command"][:3])
+        body.append([command, f"{r.get('world_size')} x {r.get('device')}", r.get("backend", ""),
+                     str(r.get("amp")), str(r.get("batch_per_process")), str(r.get("steps")),
+                     _fmt(r.get("samples_per_s"), ".2f"), _fmt(r.get("peak_allocated_mb"), ".0f")])
+    header = ["command", "processes", "backend", "AMP", "batch / process", "steps", "samples/s", "peak MB (rank 0)"]
+    return _table(header, body, {4, 5, 6, 7}) + [
+        "", "samples/s: median over the logged windows after the first (warm-up), all processes together."]
+
+
+def tests_section(out: Path) -> list[str]:
+    counts = junit_counts(out / "tests" / "junit.xml")
+    if counts is None:
+        return ["No CUDA test results (tests/junit.xml missing)."]
+    ran = counts["tests"] - counts["skipped"]
+    return [f"`pytest -m cuda`: {ran} ran, {counts['failures']} failed, {counts['errors']} errors, "
+            f"{counts['skipped']} skipped."]
+
+
+def report(out: Path, peak_tflops: float | None = None, peak_gbps: float | None = None) -> str:
+    env = _read_json(out / "env" / "env.json") or {}
+    gpu = env["gpus"][0]["name"] if env.get("gpus") else None
+    found = peaks_for(gpu)
+    peaks = found[1] if found else None
+    if peak_tflops or peak_gbps:
+        base = peaks or (0.0, 0.0, 0.0)
+        peaks = (peak_tflops or base[0], base[1], peak_gbps or base[2])
+        peaks = peaks if peaks[0] and peaks[2] else None
+    parts = [
+        header_section(out), ["", "### Stages", ""], stages_section(out), ["", "### CUDA tests", ""],
+        tests_section(out), ["", "### Op benchmarks: fused vs reference", ""], ops_section(out, peaks),
+        ["", "### Forecasting step", ""], forecast_section(out), ["", "### Training bursts", ""],
+        training_section(out),
+    ]
+    return "\n".join(line for part in parts for line in part) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu.report", description=__doc__.splitlines()[0])
+    parser.add_argument("outdir", type=Path, help="folder written by benchmarks/gpu/run.sh")
+    parser.add_argument("--peak-tflops", type=float, help="fp32 compute roof (TFLOP/s) instead of the table's")
+    parser.add_argument("--peak-gbps", type=float, help="memory roof (GB/s) instead of the table's")
+    args = parser.parse_args(argv)
+    if not args.outdir.is_dir():
+        parser.error(f"{args.outdir} is not a folder")
+    print(report(args.outdir, args.peak_tflops, args.peak_gbps), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -29,7 +29,7 @@ from t3fast.evaluation.baselines import constant_velocity, copy_paste, warp_cons
 from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
 from t3fast.models.ego_motion import planar_poses
-from t3fast.models.world_model import T3Former
+from t3fast.models.world_model import T3Former, split_past_motion
 
 OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
 PLAN_KEYS = ("1s", "2s", "3s", "avg")
@@ -53,14 +53,18 @@ class MethodOutput:
 Method = Callable[[DrivingBatch], MethodOutput]
 
 
-def t3former_method(model: T3Former) -> Method:
-    """The world model: encode the 5 past frames, forecast 6 steps, plan."""
+def t3former_method(model: T3Former, gt_ego: bool = False) -> Method:
+    """The world model: encode the 5 past frames (moved into the present frame with the past
+    poses when the model is ego-aligned), forecast 6 steps, plan. ``gt_ego``: the steered
+    forecast along the TRUE future poses (uses ground-truth ego motion)."""
 
     def run(batch: DrivingBatch) -> MethodOutput:
-        past = model.encode_sequence(batch.past_occ)
-        out = model.forecast_from_triplanes(past, batch.past_actions, NUM_FUTURE)
+        poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
+        past = model.encode_history(batch.past_occ, poses)
+        steer = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else None
+        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer)
         present = past.map(lambda p: p[:, -1])
-        return MethodOutput(out.labels, out.actions, model.decoder.predict(present))
+        return MethodOutput(out.labels, None if gt_ego else out.actions, model.decoder.predict(present))
 
     return run
 
@@ -179,8 +183,8 @@ def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 2, 
     model.eval()
     device = next(model.parameters()).device
     batch = sample_batch.to(device)
-    past = model.encode_sequence(batch.past_occ[:1])
-    actions = batch.past_actions[:1]
+    poses, actions = split_past_motion(batch.ego_poses[:1, : PRESENT + 1])
+    past = model.encode_history(batch.past_occ[:1], poses)
 
     def step() -> None:
         model.forecast_from_triplanes(past, actions, NUM_FUTURE)

@@ -101,6 +101,10 @@ class WorldModelConfig:
     planner_heads: int = 5
     planner_layers: int = 2
     past_actions: int = 4
+    # forecast in the present frame (history moved there with the past poses; each future
+    # frame decoded in its own ego frame from its pose); False: the papers' formulation, each
+    # frame in its own ego frame
+    ego_aligned: bool = False
 
     def __post_init__(self) -> None:
         if not 1 <= self.scales <= len(self.forecaster_widths):

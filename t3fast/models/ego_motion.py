@@ -93,17 +93,23 @@ def poses_from_displacements(displacements: Tensor, last_heading: Tensor | None 
     return torch.cat([xy, torch.stack(out, dim=1).unsqueeze(-1)], dim=-1)
 
 
+def _columns_in(target_in_source: Tensor, grid: tuple[int, int]) -> Tensor:
+    """Centres of a target frame's voxel columns in the source frame, ``[B, X * Y, 3]`` (x, y, yaw)."""
+    nx, ny = grid[:2]
+    dev, dt = target_in_source.device, target_in_source.dtype
+    xs = GRID_LOWER[0] + VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5)
+    ys = GRID_LOWER[1] + VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5)
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    cols = torch.stack([gx.flatten(), gy.flatten(), torch.zeros_like(gx.flatten())], -1)
+    return compose(target_in_source[:, None, :], cols[None])
+
+
 def column_index(target_in_source: Tensor, grid: tuple[int, int]) -> tuple[Tensor, Tensor]:
     """For each voxel column of a target frame whose pose in the source frame is
     ``target_in_source`` ``[B, 3]``: the flat index of the source column containing its centre
     and whether it lies inside the source grid. Returns ``([B, X * Y] int64, [B, X * Y] bool)``."""
     nx, ny = grid
-    dev, dt = target_in_source.device, target_in_source.dtype
-    xs = GRID_LOWER[0] + VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5)
-    ys = GRID_LOWER[1] + VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5)
-    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
-    pts = torch.stack([gx.flatten(), gy.flatten(), torch.zeros_like(gx.flatten())], -1)  # [XY, 3]
-    src = compose(target_in_source[:, None, :], pts[None])  # [B, XY, 3]
+    src = _columns_in(target_in_source, grid)
     i = torch.floor((src[..., 0] - GRID_LOWER[0]) / VOXEL_SIZE).long()
     j = torch.floor((src[..., 1] - GRID_LOWER[1]) / VOXEL_SIZE).long()
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
@@ -135,3 +141,22 @@ def unwarp_sequence(frames: Tensor, poses: Tensor, fill: int = FREE) -> Tensor:
     """The inverse of :func:`warp_sequence`: frames ``[B, T, X, Y, Z]`` in the reference frame
     resampled into each frame's own ego frame (pose ``poses`` ``[B, T, 3]`` in the reference)."""
     return warp_volume(frames.flatten(0, 1), poses.flatten(0, 1), fill).view(frames.shape)
+
+
+def frame_queries(poses: Tensor, grid: tuple[int, int, int]) -> Tensor:
+    """Decoder query points of every voxel centre of frames whose planar poses in the
+    forecasting frame are ``poses`` ``[B, 3]``: ``[B, X * Y * Z, 3]`` in that frame's normalised
+    coordinates (z fastest, so the result reshapes to ``[B, X, Y, Z]``). Points beyond the
+    forecasting frame's grid are clamped to its border: the planes continue their edge there
+    (a road running out of the grid goes on) instead of inventing nothing."""
+    nx, ny, nz = grid
+    dev, dt = poses.device, poses.dtype
+    src = _columns_in(poses, (nx, ny))  # metres in the forecasting frame
+    half = VOXEL_SIZE * nx / 2, VOXEL_SIZE * ny / 2
+    x = (src[..., 0] / half[0]).clamp(-1, 1)
+    y = (src[..., 1] / half[1]).clamp(-1, 1)
+    z = (2 * torch.arange(nz, device=dev, dtype=dt) + 1) / nz - 1
+    b = poses.shape[0]
+    return torch.stack(
+        [x[..., None].expand(b, nx * ny, nz), y[..., None].expand(b, nx * ny, nz), z.expand(b, nx * ny, nz)], -1
+    ).reshape(b, nx * ny * nz, 3)

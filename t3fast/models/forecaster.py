@@ -217,9 +217,23 @@ class DeltaTriplaneForecaster(nn.Module):
                 for name, size in sizes.items()
             }
         )
-        # the 1x1 fusion of delta_fuse, initialised to the identity: next = prev + Delta
-        self.fuse_weight = nn.ParameterDict({n: nn.Parameter(torch.eye(channels)) for n in sizes})
+        # the 1x1 fusion of delta_fuse is the identity plus a learned part that starts at 0, so
+        # weight decay pulls it toward "keep the previous plane", not toward erasing it
+        self.fuse_residual = nn.ParameterDict({n: nn.Parameter(torch.zeros(channels, channels)) for n in sizes})
         self.fuse_bias = nn.ParameterDict({n: nn.Parameter(torch.zeros(channels)) for n in sizes})
+
+    def fuse_weight(self, name: str) -> Tensor:
+        """The 1x1 fusion weight ``[C, C]`` of plane ``name``: identity + learned part."""
+        residual = self.fuse_residual[name]
+        return torch.eye(residual.shape[0], dtype=residual.dtype, device=residual.device) + residual
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints written before the identity + residual parametrisation store the full weight
+        for name in list(self.fuse_residual):
+            old = state_dict.pop(f"{prefix}fuse_weight.{name}", None)
+            if old is not None:
+                state_dict[f"{prefix}fuse_residual.{name}"] = old - torch.eye(old.shape[0], dtype=old.dtype)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def step(self, history: Triplane, step: int) -> tuple[Triplane, Triplane]:
         """One step: history planes ``[B, T, C, H, W]`` -> (next triplane, its change Delta)."""
@@ -231,7 +245,7 @@ class DeltaTriplaneForecaster(nn.Module):
                 continue
             delta = self.predictors[name](planes[:, -self.history :], step)
             prev = planes[:, -1]
-            out = delta_fuse(delta, prev, self.fuse_weight[name], self.fuse_bias[name]) if self.predict_delta else delta
+            out = delta_fuse(delta, prev, self.fuse_weight(name), self.fuse_bias[name]) if self.predict_delta else delta
             nxt.append(out)
             deltas.append(out - prev if not self.predict_delta else delta)
         return Triplane(*nxt), Triplane(*deltas)

@@ -1,4 +1,13 @@
-"""T3Former: the world model wiring encoder (frozen), forecaster, planner and decoder."""
+"""T3Former: the world model wiring encoder (frozen), forecaster, planner and decoder.
+
+Ego motion is geometry (``ego_aligned=True``, see :mod:`t3fast.models.ego_motion`): the past
+frames are moved into the present ego frame with the past poses before encoding, the
+forecaster predicts the triplanes of future steps in that one frame (static content stays
+still; Delta carries what moves), and each future frame is decoded in its own ego
+coordinates by querying the predicted triplane at that frame's voxel centres, placed with the
+pose the planner plans (position; heading = direction of travel) or the one given
+(``future_actions``: a steered forecast). ``ego_aligned=False`` is the papers' formulation:
+every frame in its own ego frame, the forecaster left to learn the ego's motion."""
 
 from __future__ import annotations
 
@@ -9,6 +18,7 @@ from torch import Tensor, nn
 
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
+from t3fast.models.ego_motion import frame_queries, planar_poses, poses_from_displacements, warp_sequence
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
@@ -22,14 +32,35 @@ class Forecast:
     Attributes:
         labels: uint8 ``[B, S, X, Y, Z]`` decoded future occupancy (argmax mode).
         triplanes: per step the predicted :class:`Triplane` (planes ``[B, C, H, W]``).
-        actions: ``[B, S, 2]`` planned displacements in the present frame.
+        actions: ``[B, S, 2]`` planned (or given) displacements in the present frame.
         trajectory: ``[B, S, 2]`` planned positions, ``actions.cumsum(1)``.
+        poses: ``[B, S, 3]`` future ego poses (x, y, yaw) in the present frame; each labels
+            frame is in the ego frame of its pose.
     """
 
     labels: Tensor
     triplanes: list[Triplane]
     actions: Tensor
     trajectory: Tensor
+    poses: Tensor
+
+
+def split_past_motion(motion: Tensor) -> tuple[Tensor, Tensor]:
+    """Past planar poses ``[B, T, 3]`` (present frame, present last) and displacements
+    ``[B, T - 1, 2]`` from either ego -> world poses ``[B, T, 4, 4]`` or past displacements
+    ``[B, T - 1, 2]`` (then each past heading is taken as the direction of travel)."""
+    if motion.dim() == 4 and motion.shape[-2:] == (4, 4):
+        poses = planar_poses(motion, motion.shape[1] - 1)
+        return poses, poses[:, 1:, :2] - poses[:, :-1, :2]
+    if motion.dim() != 3 or motion.shape[-1] != 2:
+        raise ValueError(f"past motion must be poses [B, T, 4, 4] or displacements [B, T-1, 2], "
+                         f"got shape {list(motion.shape)}")
+    # positions of the past frames: the present at the origin, each earlier one a step back
+    back = torch.flip(torch.flip(motion, [1]).cumsum(1), [1])
+    xy = torch.cat([-back, torch.zeros_like(motion[:, :1])], dim=1)
+    heading = torch.atan2(motion[..., 1], motion[..., 0])
+    heading = torch.cat([heading[:, :1], heading], dim=1) - heading[:, -1:]  # the present heads along +x
+    return torch.cat([xy, heading.unsqueeze(-1)], dim=-1), motion
 
 
 class T3Former(nn.Module):
@@ -45,9 +76,11 @@ class T3Former(nn.Module):
         forecaster: DeltaTriplaneForecaster,
         planner: MotionPlanner,
         decoder: TriplaneDecoder,
+        ego_aligned: bool = False,
     ):
         super().__init__()
         self.encoder, self.forecaster, self.planner, self.decoder = encoder, forecaster, planner, decoder
+        self.ego_aligned = ego_aligned
         self.encoder.requires_grad_(False)
 
     @classmethod
@@ -76,7 +109,8 @@ class T3Former(nn.Module):
             layers=world.planner_layers,
             bev=bev,
         )
-        return cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder))
+        return cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder),
+                   ego_aligned=world.ego_aligned)
 
     def train(self, mode: bool = True) -> T3Former:
         super().train(mode)
@@ -90,6 +124,27 @@ class T3Former(nn.Module):
         planes = self.encoder(occupancy.flatten(0, 1))
         return planes.map(lambda p: p.unflatten(0, (b, t)))
 
+    @torch.no_grad()
+    def encode_history(self, occupancy: Tensor, poses: Tensor) -> Triplane:
+        """Past frames ``[B, T, X, Y, Z]`` (the present last) -> planes ``[B, T, C, H, W]`` in the
+        frame the forecaster works in: with ``ego_aligned`` every frame is first moved into the
+        present ego frame with its planar pose ``poses`` ``[B, T, 3]`` there."""
+        if self.ego_aligned:
+            occupancy = warp_sequence(occupancy, poses)
+        return self.encode_sequence(occupancy)
+
+    @torch.no_grad()
+    def decode_frames(self, futures: list[Triplane], poses: Tensor) -> Tensor:
+        """Future triplanes -> labels uint8 ``[B, S, X, Y, Z]``, each frame in the ego frame of
+        its pose ``poses[:, k]`` (``[B, S, 3]`` in the present frame; ``ego_aligned`` only)."""
+        if not self.ego_aligned:
+            return torch.stack([self.decoder.predict(t) for t in futures], dim=1)
+        grid = self.decoder.grid
+        frames = []
+        for k, t in enumerate(futures):
+            points = frame_queries(poses[:, k].float(), grid)
+            frames.append(self.decoder.predict(t, points).view(-1, *grid))
+        return torch.stack(frames, dim=1)
     def rollout(
         self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0
     ) -> tuple[list[Triplane], list[Triplane], Tensor]:
@@ -120,21 +175,42 @@ class T3Former(nn.Module):
         return futures, actions, logits
 
     @torch.no_grad()
-    def forecast(self, past_occupancy: Tensor, past_actions: Tensor, steps: int = 6) -> Forecast:
+    def forecast(
+        self, past_occupancy: Tensor, past_motion: Tensor, future_actions: Tensor | None = None, steps: int = 6
+    ) -> Forecast:
         """The full forecasting step.
 
         Args:
-            past_occupancy: labels ``[B, T, X, Y, Z]`` of the past frames and the present (last).
-            past_actions: ``[B, T - 1, 2]`` past displacements in the present frame.
-            steps: future frames (6 = 3 s at 2 Hz).
+            past_occupancy: labels ``[B, T, X, Y, Z]`` of the past frames and the present (last),
+                each in its own ego frame.
+            past_motion: ego -> world poses ``[B, T, 4, 4]`` of those frames, or the past
+                displacements ``[B, T - 1, 2]`` in the present frame.
+            future_actions: ``[B, S, 2]`` displacements (or ``[B, S, 3]`` poses x, y, yaw) in
+                the present frame to forecast along (the world model as a simulator); None:
+                the planner plans them.
+            steps: future frames (6 = 3 s at 2 Hz); ``future_actions`` sets it when given.
         """
-        return self.forecast_from_triplanes(self.encode_sequence(past_occupancy), past_actions, steps)
+        poses, actions = split_past_motion(past_motion)
+        past = self.encode_history(past_occupancy, poses)
+        return self.forecast_from_triplanes(past, actions, steps, future_actions)
 
     @torch.no_grad()
-    def forecast_from_triplanes(self, past: Triplane, past_actions: Tensor, steps: int = 6) -> Forecast:
-        """The forecasting step from encoded past frames (planes ``[B, T, C, H, W]``): forecaster,
-        planner and decoding to labels. A streaming user encodes each new frame once and keeps
-        the planes of the previous ones."""
-        futures, _, actions = self.rollout(past, past_actions, steps)
-        labels = torch.stack([self.decoder.predict(t) for t in futures], dim=1)
-        return Forecast(labels, futures, actions, actions.cumsum(1))
+    def forecast_from_triplanes(
+        self, past: Triplane, past_actions: Tensor, steps: int = 6, future_actions: Tensor | None = None
+    ) -> Forecast:
+        """The forecasting step from encoded past frames (planes ``[B, T, C, H, W]`` from
+        :meth:`encode_history`): forecaster, planner (unless ``future_actions`` are given) and
+        decoding to labels. A streaming user encodes each new frame once (papers'
+        formulation) and keeps the planes of the previous ones."""
+        if future_actions is not None:
+            steps = future_actions.shape[1]
+            futures, _ = self.forecaster(past, steps)
+            actions = future_actions[..., :2]
+        else:
+            futures, _, actions = self.rollout(past, past_actions, steps)
+        if future_actions is not None and future_actions.shape[-1] == 3:
+            poses = future_actions
+        else:
+            poses = poses_from_displacements(actions)
+        labels = self.decode_frames(futures, poses)
+        return Forecast(labels, futures, actions, actions.cumsum(1), poses)

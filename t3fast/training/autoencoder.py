@@ -15,6 +15,7 @@ from t3fast.data.synthetic import SyntheticFrames
 from t3fast.evaluation.reconstruction import evaluate_reconstruction
 from t3fast.models.autoencoder import TriplaneAutoencoder
 from t3fast.models.config import AutoencoderConfig, named_config
+from t3fast.training.checkpoint import load_checkpoint
 from t3fast.training.config import config_to_dict
 from t3fast.training.losses import class_frequency_weights, occupancy_loss
 from t3fast.training.sampling import sample_query_points
@@ -58,6 +59,9 @@ class Stage1Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     decoder_backend: str = "fused"  # "reference" for comparisons
+    # a stage-1 or stage-2 checkpoint whose encoder and decoder weights training starts from
+    # (fine-tuning: a new data layout, or synthetic -> Occ3D); "" starts from scratch
+    init_from: str = ""
 
 
 def _preset(model: str, train_scenes: int = 200, **train) -> Stage1Config:
@@ -107,7 +111,16 @@ class AutoencoderTask:
         self._class_weights: Tensor | None = None
 
     def build_model(self) -> nn.Module:
-        return TriplaneAutoencoder(self.cfg.model, decoder_backend=self.cfg.decoder_backend)
+        model = TriplaneAutoencoder(self.cfg.model, decoder_backend=self.cfg.decoder_backend)
+        if self.cfg.init_from:
+            weights = load_checkpoint(self.cfg.init_from)["model"]
+            parts = {k: v.float() for k, v in weights.items() if k.split(".", 1)[0] in ("encoder", "decoder")}
+            try:
+                model.load_state_dict(parts)
+            except RuntimeError as exc:
+                raise ValueError(f"init_from={self.cfg.init_from!r}: its encoder/decoder do not fit this "
+                                 f"model's config ({str(exc).splitlines()[0]})") from exc
+        return model
 
     def train_dataset(self) -> Dataset:
         return frames_dataset(self.cfg.data, "train")

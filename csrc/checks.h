@@ -96,6 +96,8 @@ inline void check_planes(const at::Tensor& xy, const at::Tensor& xz, const at::T
   check_size(xz, op, "xz", 2, xy.size(2), "X', as xy.shape[2]");
   check_size(yz, op, "yz", 2, xy.size(3), "Y', as xy.shape[3]");
   check_size(yz, op, "yz", 3, xz.size(3), "Z', as xz.shape[3]");
+  T3FAST_CHECK(xy.size(1) > 0, op, "planes must have at least one channel, got xy ",
+               xy.sizes());
   for (const auto* p : {&xy, &xz, &yz}) {
     T3FAST_CHECK(p->size(2) > 0 && p->size(3) > 0, op, "planes must have non-empty spatial ",
                  "dims, got xy ", xy.sizes(), ", xz ", xz.sizes(), ", yz ", yz.sizes());

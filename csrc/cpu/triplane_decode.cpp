@@ -203,14 +203,20 @@ inline at::Tensor view2d(const at::Tensor& flat, int64_t rows, int64_t cols) {
   return flat.narrow(0, 0, rows * cols).view({rows, cols});
 }
 
-// First index of the maximum of each row of logits [rows, K], like torch.argmax.
+// First index of the maximum of each row of logits [rows, K], like torch.argmax: NaN counts
+// as larger than every number, so a row's first NaN wins (as in the CUDA kernel).
 template <typename T>
 T3FAST_SIMD_CLONES void argmax_rows(const T* logits, int64_t rows, int64_t K, uint8_t* out) {
   for (int64_t r = 0; r < rows; ++r) {
     const T* row = logits + r * K;
     int64_t best = 0;
+    T best_value = row[0];
     for (int64_t k = 1; k < K; ++k) {
-      if (row[k] > row[best]) best = k;
+      const T v = row[k];
+      if (v > best_value || (v != v && best_value == best_value)) {
+        best = k;
+        best_value = v;
+      }
     }
     out[r] = static_cast<uint8_t>(best);
   }

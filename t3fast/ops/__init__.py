@@ -13,6 +13,7 @@ from typing import Any
 from torch import Tensor
 
 from t3fast.ops import reference
+from t3fast.ops._checks import checked_grid
 from t3fast.ops._registration import _C, ops
 
 __all__ = ["axis_pool", "build_info", "delta_fuse", "reference", "triplane_decode"]
@@ -55,11 +56,14 @@ def triplane_decode(
         yz: ``[B, C, Y', Z']`` plane.
         weights: per layer ``[out_i, in_i]`` (``nn.Linear`` layout), ``in_0 = C + 6 * pe_freqs``.
         biases: per layer ``[out_i]``.
-        grid: ``(X, Y, Z)``: query every voxel centre ``(2 i + 1) / N - 1`` of that grid.
+        grid: ``(X, Y, Z)``: query every voxel centre ``(2 i + 1) / N - 1`` of that grid; an
+            output larger than the device's memory is refused with a ``ValueError``.
         points: ``[B, N, 3]`` query coordinates (x, y, z); they receive no gradient.
         pe_freqs: number of encoding frequencies F.
         argmax: return the first-maximum class as uint8 instead of logits (no logits
-            tensor is ever allocated; needs at most 256 classes).
+            tensor is ever allocated; needs at most 256 classes). Exactly what
+            ``torch.argmax`` returns on the logits: NaN counts as the maximum, so a row
+            with a NaN logit gets its first NaN's class.
 
     Returns:
         logits ``[B, X, Y, Z, K]`` (grid) or ``[B, N, K]`` (points); with ``argmax`` uint8
@@ -69,14 +73,17 @@ def triplane_decode(
     the planes, weights and biases (not the points). float32/float64 on CPU, also
     float16/bfloat16 on CUDA.
     """
+    weights = list(weights)
+    if grid is not None and weights:
+        grid = checked_grid(grid, xy, weights[-1].shape[0], argmax)
     return ops.triplane_decode.default(
         xy,
         xz,
         yz,
-        list(weights),
+        weights,
         list(biases),
         points,
-        None if grid is None else [int(n) for n in grid],
+        grid,
         int(pe_freqs),
         bool(argmax),
     )

@@ -14,6 +14,9 @@ from t3fast.models.config import AutoencoderConfig
 from t3fast.models.triplane import Triplane
 from t3fast.ops import reference as reference_ops
 
+#: largest pe_freqs the fused op accepts
+MAX_PE_FREQS = 30
+
 
 class TriplaneDecoder(nn.Module):
     """Decodes a triplane into semantic occupancy.
@@ -66,6 +69,10 @@ class TriplaneDecoder(nn.Module):
             )
         if backend not in ("fused", "reference"):
             raise ValueError(f"backend must be 'fused' or 'reference', got {backend!r}")
+        if not 0 <= pe_freqs <= MAX_PE_FREQS:  # the fused op's limit, checked here rather than at the first forward
+            raise ValueError(f"pe_freqs must be in [0, {MAX_PE_FREQS}], got {pe_freqs}")
+        if not 1 <= num_classes <= 256:  # argmax labels are uint8
+            raise ValueError(f"num_classes must be in [1, 256], got {num_classes}")
         self.grid = tuple(int(n) for n in grid)
         self.pe_freqs = pe_freqs
         self.bev = bev
@@ -96,6 +103,9 @@ class TriplaneDecoder(nn.Module):
 
     def features(self, triplane: Triplane | Sequence[Tensor]) -> Triplane:
         """The refined planes fed to the decode op (zero vertical planes for a BEV latent)."""
+        if not self.bev and (triplane[1] is None or triplane[2] is None):
+            raise ValueError("a BEV-only latent (xz and yz are None) given to a triplane decoder; "
+                             "decode it with a decoder built with bev=True")
         xy = self.refiners[0](triplane[0])
         if self.bev:
             b, c, x, y = xy.shape

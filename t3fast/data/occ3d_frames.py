@@ -8,6 +8,7 @@ import torch
 from torch.utils.data import Dataset
 
 from t3fast.data.occ3d import read_infos, read_labels
+from t3fast.paths import inside
 
 
 class Occ3DFrames(Dataset):
@@ -29,7 +30,7 @@ class Occ3DFrames(Dataset):
 
     def __getitem__(self, index: int) -> torch.Tensor:
         scene, token = self.frames[index]
-        occ = torch.from_numpy(read_labels(self.root / "gts" / scene / token / "labels.npz")["semantics"])
+        occ = torch.from_numpy(read_labels(inside(self.root / "gts", scene, token, "labels.npz"))["semantics"])
         if self.flip:
             for dim in (0, 1):
                 if torch.rand(()).item() < 0.5:

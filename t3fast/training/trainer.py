@@ -13,7 +13,8 @@ process group, wraps the model in DistributedDataParallel, and shards every glob
 Files in ``out_dir`` (written by rank 0): ``last.pt`` (every ``ckpt_every`` steps, at the end,
 and on Ctrl-C), ``best.pt`` (whenever the evaluation score improves), ``metrics.jsonl`` (one
 ``{"event", "step", "time", "values"}`` object per log or evaluation), ``tb/`` (TensorBoard,
-when installed).
+when installed). A new run needs an empty ``out_dir``; ``resume`` continues the run there and
+``overwrite`` replaces it (:mod:`t3fast.training.run_dir`).
 
 Exact resume: a run resumed from ``last.pt`` takes the same steps as an uninterrupted one:
 same weights, optimiser and scheduler state, batches and random streams. Randomness inside

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
 from pathlib import Path
 
@@ -156,8 +157,11 @@ def training_section(out: Path) -> list[str]:
     body = []
     for stage in ("train_ae", "train_wm"):
         r = _read_json(out / stage / "result.json")
-        if r is None:
-            body.append([stage, "no result", "", "", "", "", "", ""])
+        if r is None:  # killed before rank 0 wrote it: what the trainer had logged
+            windows = [e["values"]["samples_per_s"] for e in _read_jsonl(out / stage / "run" / "metrics.jsonl")
+                       if e.get("event") == "train"]
+            rate = statistics.median(windows[1:] or windows) if windows else None
+            body.append([f"{stage} (no result.json)", "", "", "", "", f"{len(windows)} windows", _fmt(rate), ""])
             continue
         command = " ".join(r["command"][:3])
         body.append([command, f"{r.get('world_size')} x {r.get('device')}", r.get("backend", ""),

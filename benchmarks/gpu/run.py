@@ -90,7 +90,7 @@ def _env_steps(ctx: Context, d: Path) -> list[Step]:
     steps = []
     if shutil.which("nvidia-smi"):
         steps.append(Step("nvidia-smi", ["nvidia-smi", "-L"]))
-        query = "name,memory.total,driver_version,clocks.max.sm,clocks.max.mem,power.limit"
+        query = "name,memory.total,driver_version,clocks.max.sm,power.limit"
         steps.append(Step("nvidia-smi-query", ["nvidia-smi", f"--query-gpu={query}", "--format=csv"]))
     elif ctx.cuda:
         steps.append(Step("nvidia-smi", [PY, "-c", "import sys; sys.exit('nvidia-smi not found')"]))
@@ -293,7 +293,7 @@ def run_step(step: Step, log: Path, timeout: float, extra_env: dict[str, str] | 
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
-    for sig, grace in ((signal.SIGTERM, 15), (signal.SIGKILL, 5)):
+    for sig, grace in ((signal.SIGTERM, 5), (signal.SIGKILL, 5)):
         try:
             os.killpg(proc.pid, sig)
         except ProcessLookupError:
@@ -401,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=["cuda", "cpu"], default="cuda")
     parser.add_argument("--quick", action="store_true", help="tiny sizes and a few steps (the dry run)")
     parser.add_argument("--budget", type=float, default=None,
-                        help="seconds for the whole run (default 570 on cuda, 400 with --quick)")
+                        help="seconds for the whole run (default 540 on cuda, 400 with --quick)")
     parser.add_argument("--stages", default=",".join(s.name for s in STAGES),
                         help="comma-separated subset of the stages, in their fixed order")
     parser.add_argument("--arch", default=os.environ.get("TORCH_CUDA_ARCH_LIST", "9.0"),
@@ -420,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown stages {unknown}")
     stages = [s for s in STAGES if s.name in wanted]
     nproc = args.nproc or (_gpu_count() if args.device == "cuda" else 2)
-    budget = args.budget or (400.0 if args.quick else 570.0)
+    budget = args.budget or (400.0 if args.quick else 540.0)
     out = args.outdir.resolve()
     out.mkdir(parents=True, exist_ok=True)
     ctx = Context(out=out, device=args.device, quick=args.quick, arch=args.arch, jobs=args.jobs, nproc=nproc)

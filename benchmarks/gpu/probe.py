@@ -27,6 +27,14 @@ def _command_output(argv: list[str]) -> str | None:
     return (out.stdout + out.stderr).strip()
 
 
+def nccl_version() -> str:
+    """``major.minor.patch`` (torch returns a tuple, or an int such as 2708 in old releases)."""
+    import torch
+
+    version = torch.cuda.nccl.version()
+    return ".".join(map(str, version)) if isinstance(version, tuple) else str(version)
+
+
 def environment() -> dict:
     import torch
 
@@ -44,7 +52,7 @@ def environment() -> dict:
     }
     if torch.cuda.is_available():
         try:
-            info["nccl"] = ".".join(map(str, torch.cuda.nccl.version()))
+            info["nccl"] = nccl_version()
         except Exception as exc:  # NCCL may be absent from a build
             info["nccl"] = f"unavailable ({exc})"
         for index in range(torch.cuda.device_count()):

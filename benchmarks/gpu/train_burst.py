@@ -30,6 +30,12 @@ import torch
 import torch.distributed as dist
 
 
+def nccl_version() -> str:
+    """``major.minor.patch`` (torch returns a tuple, or an int such as 2708 in old releases)."""
+    version = torch.cuda.nccl.version()
+    return ".".join(map(str, version)) if isinstance(version, tuple) else str(version)
+
+
 def _die_with_parent() -> None:
     """Linux: get SIGKILL when the torchrun agent dies, so no worker outlives a killed stage."""
     try:
@@ -151,8 +157,11 @@ def main(argv: list[str] | None = None) -> int:
             "stopped_by_timer": burst.stopped_by_timer,
         }
         if args.backend == "nccl":
-            result["nccl"] = ".".join(map(str, torch.cuda.nccl.version()))
-            result["peak_allocated_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+            try:
+                result["nccl"] = nccl_version()
+                result["peak_allocated_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+            except Exception as exc:  # the throughput below matters more than these
+                result["cuda_info_error"] = f"{type(exc).__name__}: {exc}"
         if trainer is not None:
             amp = getattr(trainer, "amp_dtype", None)
             result.update(

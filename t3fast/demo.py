@@ -41,13 +41,14 @@ def checkpoint_paths(folder: Path) -> list[Path]:
 @torch.no_grad()
 def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.device) -> list[Path]:
     """PNG + GIF of the forecasts of ``indices``."""
-    from t3fast.data.sample import collate_samples
+    from t3fast.data.sample import PRESENT, collate_samples
     from t3fast.viz import save_forecast_pictures
 
     written = []
     for i in indices:
         sample = dataset[i]
-        forecast = model.forecast(collate_samples([sample]).to(device).past_occ, sample.past_actions[None].to(device))
+        batch = collate_samples([sample]).to(device)
+        forecast = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])
         written += save_forecast_pictures(
             out / f"{sample.scene}-t{sample.start:02d}", sample.past_occ.numpy(), forecast.labels[0].cpu().numpy(),
             sample.future_occ.numpy(), forecast.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),

@@ -45,7 +45,8 @@ def load_models(paths: list[Path], device: torch.device) -> dict:
     models = {}
     for path in paths:
         model, cfg = load_world_model(path, device)
-        name = method_name(cfg.model.predict_delta, cfg.model.scales, cfg.autoencoder.latent)
+        name = method_name(cfg.model.predict_delta, cfg.model.scales, cfg.autoencoder.latent,
+                           cfg.model.ego_aligned)
         if name in models:
             raise ValueError(f"{path}: a second {name!r} model; pass one checkpoint per method")
         models[name] = model
@@ -110,7 +111,7 @@ def _forecast(args: argparse.Namespace) -> int:
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):
         sample = dataset[i]
         batch = collate_samples([sample]).to(device)
-        out = model.forecast(batch.past_occ, batch.past_actions)
+        out = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])  # past poses: ego motion
         token = dataset.infos[sample.scene][sample.start + PRESENT]["token"]
         folder = inside(out_root, check_name(sample.scene, "scene name"), check_name(token, "token"))
         plan = out.trajectory[0].cpu().numpy()

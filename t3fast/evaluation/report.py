@@ -10,6 +10,7 @@ from torch.utils.data import Dataset
 
 from t3fast.data.sample import collate_samples
 from t3fast.evaluation.world_model import (
+    constant_turn_rate_method,
     constant_velocity_method,
     copy_paste_method,
     evaluate_forecasts,
@@ -22,13 +23,15 @@ from t3fast.models.world_model import T3Former
 
 # warp_gt_ego reads the true future poses: a reference for pure geometry, not a forecaster
 BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velocity_method,
-             "warp_const_vel": warp_const_vel_method, "warp_gt_ego": warp_gt_ego_method}
+             "constant_turn_rate": constant_turn_rate_method, "warp_const_vel": warp_const_vel_method,
+             "warp_gt_ego": warp_gt_ego_method}
 
 
-def method_name(predict_delta: bool, scales: int, latent: str) -> str:
-    """``"t3former"`` for the full model, else the ablations it is (``no_delta``, ``single_scale``, ``bev``)."""
-    parts = [name for name, on in (("no_delta", not predict_delta), ("single_scale", scales == 1),
-                                   ("bev", latent == "bev")) if on]
+def method_name(predict_delta: bool, scales: int, latent: str, ego_aligned: bool = True) -> str:
+    """``"t3former"`` for the full model, else the ablations it is (``own_frames``: the papers'
+    formulation, ``no_delta``, ``single_scale``, ``bev``)."""
+    parts = [name for name, on in (("own_frames", not ego_aligned), ("no_delta", not predict_delta),
+                                   ("single_scale", scales == 1), ("bev", latent == "bev")) if on]
     return "_".join(parts) or "t3former"
 
 
@@ -50,6 +53,11 @@ def evaluate_methods(
                                     progress=progress, desc=name)
         record.update(measure_speed(model, collate_samples([dataset[indices[0]]])))
         results[name] = record
+        if model.ego_aligned:  # the steered forecast along the true future poses
+            record = evaluate_forecasts(t3former_method(model, gt_ego=True), dataset, indices, device=device,
+                                        use_mask=use_mask, progress=progress, desc=f"{name}_gt_ego")
+            record.update(fps=None, peak_memory_mb=None, params=None)
+            results[f"{name}_gt_ego"] = record
     if baselines:
         for name, method in BASELINES.items():
             record = evaluate_forecasts(method, dataset, indices, device=device, use_mask=use_mask,

@@ -25,7 +25,13 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingBatch, collate_samples
-from t3fast.evaluation.baselines import constant_velocity, copy_paste, warp_const_vel, warp_present
+from t3fast.evaluation.baselines import (
+    constant_turn_rate,
+    constant_velocity,
+    copy_paste,
+    warp_const_vel,
+    warp_present,
+)
 from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
 from t3fast.models.ego_motion import planar_poses
@@ -79,6 +85,11 @@ def constant_velocity_method(batch: DrivingBatch) -> MethodOutput:
     return MethodOutput(actions=constant_velocity(batch.past_actions, NUM_FUTURE))
 
 
+def constant_turn_rate_method(batch: DrivingBatch) -> MethodOutput:
+    """Constant speed and turn rate (the untrained planner's plan); no occupancy."""
+    return MethodOutput(actions=constant_turn_rate(batch.past_actions, NUM_FUTURE))
+
+
 def warp_const_vel_method(batch: DrivingBatch) -> MethodOutput:
     """The present frame moved into each future ego frame, poses extrapolated at constant
     velocity and yaw rate from the past poses; no plan."""
@@ -92,13 +103,18 @@ def warp_gt_ego_method(batch: DrivingBatch) -> MethodOutput:
     return MethodOutput(labels=warp_present(batch.past_occ, future))
 
 
-def _summaries(occ: dict[str, OccupancyMetrics] | None, plan: PlanningMetrics | None) -> dict:
+def _summaries(
+    occ: dict[str, OccupancyMetrics] | None, plan: PlanningMetrics | None, absent: str = "one"
+) -> dict:
     record: dict = {}
     for key in ("miou", "iou"):
         if occ is None:
             record[key] = dict.fromkeys(OCC_KEYS)
             continue
-        values = {h: (None if m is None else m.summary()[key]) for h, m in occ.items()}
+        if key == "miou":
+            values = {h: (None if m is None else 100 * m.miou(absent)) for h, m in occ.items()}
+        else:
+            values = {h: (None if m is None else m.summary()[key]) for h, m in occ.items()}
         values["avg"] = sum(values[h] for h in HORIZONS) / len(HORIZONS)
         record[key] = {k: values[k] for k in OCC_KEYS}
     planning = plan.summary() if plan is not None else {}
@@ -117,12 +133,15 @@ def evaluate_forecasts(
     use_mask: bool = False,
     progress: bool = True,
     desc: str = "evaluate",
+    absent: str = "one",
 ) -> dict:
     """Score ``method`` on the windows ``indices`` of ``dataset`` (``DrivingSample`` items).
 
     Occupancy: one confusion matrix per horizon (1 s, 2 s, 3 s = future frames 2, 4, 6) over
     the whole set, "0 s" from the method's reconstruction of the present frame, "avg" the
-    mean of 1-3 s. ``use_mask`` scores only voxels in Occ3D's ``mask_camera``.
+    mean of 1-3 s. ``use_mask`` scores only voxels in Occ3D's ``mask_camera``. ``absent``: how
+    a class without ground truth counts in mIoU ("one": OccWorld's protocol; "skip": left out,
+    for small validation sets where "one" inflates the score).
     """
     indices = list(range(len(dataset))) if indices is None else indices
     occ: dict[str, OccupancyMetrics | None] | None = None
@@ -147,7 +166,7 @@ def evaluate_forecasts(
             future = slice(PRESENT + 1, None)
             plan.update(out.actions.cumsum(1), batch.future_actions.cumsum(1), batch.boxes[:, future],
                         batch.box_valid[:, future], batch.box_labels)
-    return _summaries(occ, plan)
+    return _summaries(occ, plan, absent)
 
 
 def _peak_rss_mb() -> float | None:

@@ -11,7 +11,9 @@ height or pitch change between frames is ignored.
 
 Resampling is nearest-voxel: each voxel column of the target frame takes the column of the
 source frame that contains its centre, the whole column at once (heights do not change);
-columns whose centre falls outside the source grid get ``fill`` (free: unobserved).
+columns whose centre falls outside the source grid get ``fill`` (free: unobserved). Grids
+are centred on the ego in x and y with 0.4 m voxels, as Occ3D's (any X, Y: the tests use small
+ones).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from t3fast.data.classes import FREE, GRID_LOWER, VOXEL_SIZE
+from t3fast.data.classes import FREE, VOXEL_SIZE
 
 
 def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
@@ -97,8 +99,8 @@ def _columns_in(target_in_source: Tensor, grid: tuple[int, int]) -> Tensor:
     """Centres of a target frame's voxel columns in the source frame, ``[B, X * Y, 3]`` (x, y, yaw)."""
     nx, ny = grid[:2]
     dev, dt = target_in_source.device, target_in_source.dtype
-    xs = GRID_LOWER[0] + VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5)
-    ys = GRID_LOWER[1] + VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5)
+    xs = VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5 - nx / 2)
+    ys = VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5 - ny / 2)
     gx, gy = torch.meshgrid(xs, ys, indexing="ij")
     cols = torch.stack([gx.flatten(), gy.flatten(), torch.zeros_like(gx.flatten())], -1)
     return compose(target_in_source[:, None, :], cols[None])
@@ -110,8 +112,8 @@ def column_index(target_in_source: Tensor, grid: tuple[int, int]) -> tuple[Tenso
     and whether it lies inside the source grid. Returns ``([B, X * Y] int64, [B, X * Y] bool)``."""
     nx, ny = grid
     src = _columns_in(target_in_source, grid)
-    i = torch.floor((src[..., 0] - GRID_LOWER[0]) / VOXEL_SIZE).long()
-    j = torch.floor((src[..., 1] - GRID_LOWER[1]) / VOXEL_SIZE).long()
+    i = torch.floor(src[..., 0] / VOXEL_SIZE + nx / 2).long()
+    j = torch.floor(src[..., 1] / VOXEL_SIZE + ny / 2).long()
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
     return (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1)), inside
 
@@ -146,15 +148,16 @@ def unwarp_sequence(frames: Tensor, poses: Tensor, fill: int = FREE) -> Tensor:
 def frame_queries(poses: Tensor, grid: tuple[int, int, int]) -> Tensor:
     """Decoder query points of every voxel centre of frames whose planar poses in the
     forecasting frame are ``poses`` ``[B, 3]``: ``[B, X * Y * Z, 3]`` in that frame's normalised
-    coordinates (z fastest, so the result reshapes to ``[B, X, Y, Z]``). Points beyond the
-    forecasting frame's grid are clamped to its border: the planes continue their edge there
-    (a road running out of the grid goes on) instead of inventing nothing."""
+    coordinates (z fastest, so the result reshapes to ``[B, X, Y, Z]``). Columns beyond the
+    forecasting frame's grid take its outermost column: the forecast continues its edge there
+    (a road running out of the grid goes on) instead of declaring what it cannot see free."""
     nx, ny, nz = grid
     dev, dt = poses.device, poses.dtype
     src = _columns_in(poses, (nx, ny))  # metres in the forecasting frame
-    half = VOXEL_SIZE * nx / 2, VOXEL_SIZE * ny / 2
-    x = (src[..., 0] / half[0]).clamp(-1, 1)
-    y = (src[..., 1] / half[1]).clamp(-1, 1)
+    # clamped to the outermost voxel centres, so a column beyond the grid decodes exactly as the
+    # last one inside (planes and positional encoding alike)
+    x = (src[..., 0] / (VOXEL_SIZE * nx / 2)).clamp(-1 + 1 / nx, 1 - 1 / nx)
+    y = (src[..., 1] / (VOXEL_SIZE * ny / 2)).clamp(-1 + 1 / ny, 1 - 1 / ny)
     z = (2 * torch.arange(nz, device=dev, dtype=dt) + 1) / nz - 1
     b = poses.shape[0]
     return torch.stack(

@@ -72,6 +72,22 @@ class TriplaneResNet(nn.Module):
         return self.fc(torch.cat([self.net(p) for p in triplane if p is not None], dim=1))
 
 
+def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
+    """The next displacement ``[B, 2]`` at constant speed and turn rate: the last displacement of
+    ``actions`` ``[B, T, 2]`` turned by the angle between the last two (an arc, as the ego
+    drives through a bend). Below ``min_step`` metres per step a heading is noise, so the
+    last displacement is kept as it is."""
+    last = actions[:, -1]
+    if actions.shape[1] < 2:
+        return last
+    prev = actions[:, -2]
+    turn = torch.atan2(prev[:, 0] * last[:, 1] - prev[:, 1] * last[:, 0], (prev * last).sum(-1))
+    moving = (last.norm(dim=-1) > min_step) & (prev.norm(dim=-1) > min_step)
+    turn = torch.where(moving, turn, torch.zeros_like(turn))
+    c, s = torch.cos(turn), torch.sin(turn)
+    return torch.stack([c * last[:, 0] - s * last[:, 1], s * last[:, 0] + c * last[:, 1]], dim=-1)
+
+
 class MotionPlanner(nn.Module):
     """Args:
         channels: triplane channels C.
@@ -121,11 +137,12 @@ class MotionPlanner(nn.Module):
         return self.fc(fused) + self.future_queries[step]
 
     def next_action(self, q_a: Tensor, actions: Tensor) -> Tensor:
-        """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``: the last
-        displacement plus the decoder's correction (zero at initialisation, so an untrained
-        planner drives at constant velocity and training learns how motion changes)."""
+        """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``: the observed
+        motion continued (:func:`continue_motion`) plus the decoder's correction (zero at
+        initialisation, so an untrained planner drives on at constant speed and turn rate and
+        training learns how motion changes)."""
         tokens = self.action_in(actions) + self.action_time[: actions.shape[1]]
-        return actions[:, -1] + self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
+        return continue_motion(actions) + self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
 
     def forward(
         self,

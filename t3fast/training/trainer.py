@@ -118,6 +118,7 @@ class TrainConfig:
     seed: int = 0
     log_every: int = 50  # steps between train log events
     eval_every: int = 1000  # steps between evaluations (also at the end); 0 never evaluates
+    eval_at_start: bool = False  # also score the untrained model (step 0): the run's own baseline
     ckpt_every: int = 1000  # steps between last.pt writes (also at the end); 0: only at the end
     num_workers: int = 0  # DataLoader worker processes
     out_dir: str = "runs/train"
@@ -246,6 +247,8 @@ class Trainer:
         batches = self._batches()
         try:
             with self._sigint_guard():
+                if self.cfg.eval_at_start and self.cfg.eval_every and self.step == 0:
+                    self._evaluate()  # best.pt starts as the untrained model: training must beat it
                 self.model.train()
                 while self.step < self.cfg.steps:
                     self._train_step(next(batches))

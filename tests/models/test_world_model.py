@@ -73,3 +73,46 @@ def test_planning_loss_trains_the_planner_not_the_forecaster():
     actions.square().sum().backward()
     assert all(p.grad is None for p in model.forecaster.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.planner.parameters())
+
+
+def aligned(model: T3Former) -> T3Former:
+    model.ego_aligned = True
+    return model
+
+
+def _past(b: int = 1) -> torch.Tensor:
+    return torch.stack([random_labels(b, (16, 12, 4), seed=s) for s in range(5)], dim=1)
+
+
+def test_aligned_forecast_of_a_standing_ego_is_the_own_frame_forecast():
+    # no ego motion: moving frames between ego frames is the identity, so both formulations agree
+    past = _past(2)
+    still = torch.eye(4).repeat(2, 5, 1, 1)
+    own = tiny_world_model().eval().forecast(past, still, future_actions=torch.zeros(2, 3, 2))
+    ours = aligned(tiny_world_model()).eval().forecast(past, still, future_actions=torch.zeros(2, 3, 2))
+    assert torch.equal(own.labels, ours.labels)
+
+
+def test_steered_forecast_moves_the_scene_with_the_given_motion():
+    model = aligned(tiny_world_model()).eval()
+    past = _past()
+    still = torch.eye(4).repeat(1, 5, 1, 1)
+    present = model.decoder.predict(model.encode_sequence(past).map(lambda p: p[:, -1]))  # [1, 16, 12, 4]
+    # 0.8 m = 2 voxels forward per step; Delta = 0 untrained, so step k is the present moved by 2k voxels
+    out = model.forecast(past, still, future_actions=torch.tensor([[[0.8, 0.0]] * 3]))
+    assert out.poses.shape == (1, 3, 3) and torch.allclose(out.poses[0, :, 0], torch.tensor([0.8, 1.6, 2.4]))
+    for k in range(1, 4):
+        assert torch.equal(out.labels[0, k - 1, : 16 - 2 * k], present[0, 2 * k :])
+        # beyond the present grid the planes continue their edge: the last column repeated
+        assert torch.equal(out.labels[0, k - 1, 16 - 2 * k :], present[0, -1:].expand(2 * k, -1, -1))
+
+
+def test_past_displacements_stand_in_for_poses():
+    model = aligned(tiny_world_model()).eval()
+    past = _past()
+    poses = torch.eye(4).repeat(1, 5, 1, 1)
+    poses[0, :, 0, 3] = torch.tensor([-3.2, -2.4, -1.6, -0.8, 0.0])  # straight ahead, 0.8 m per step
+    by_poses = model.forecast(past, poses, steps=2)
+    by_actions = model.forecast(past, torch.tensor([[[0.8, 0.0]] * 4]), steps=2)
+    assert torch.equal(by_poses.labels, by_actions.labels)
+    torch.testing.assert_close(by_poses.actions, by_actions.actions)

@@ -12,12 +12,14 @@ from PIL import Image
 
 from t3fast.cli import main
 from t3fast.data.export import export_synthetic
+from t3fast.data.sample import PRESENT
 from t3fast.models.triplane import Triplane
 from t3fast.training.checkpoint import export_weights, load_checkpoint
 from t3fast.training.world_model import (
     SequenceBatch,
     WorldLossConfig,
     WorldModelTask,
+    ego_aligned_window,
     load_world_model,
     preset,
     rollout_loss,
@@ -90,7 +92,8 @@ def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity", "warp_const_vel", "warp_gt_ego"}
+    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity", "constant_turn_rate", "warp_const_vel",
+                            "warp_gt_ego"}
     keys = {"miou", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
     assert all(set(m) == keys for m in metrics.values())
     model = metrics["t3former"]
@@ -153,7 +156,7 @@ def test_rollout_steps_out_of_range(world_ckpt):
     cfg.autoencoder_ckpt, cfg.loss.rollout_steps = str(world_ckpt.parent.parent / "ae" / "last.pt"), 7
     planes = Triplane(torch.zeros(1, 11, 8, 8, 6), torch.zeros(1, 11, 8, 8, 2), torch.zeros(1, 11, 8, 6, 2))
     batch = SequenceBatch(torch.zeros(1, 11, 16, 12, 4, dtype=torch.uint8), planes, torch.zeros(1, 4, 2),
-                          torch.zeros(1, 6, 2))
+                          torch.zeros(1, 6, 2), torch.eye(4).repeat(1, 11, 1, 1))
     with pytest.raises(ValueError, match="rollout_steps"):
         WorldModelTask(cfg).training_step(tiny_world_model(), batch)
 
@@ -176,3 +179,21 @@ def test_pushforward_history_is_the_models_own_forecast():
         teacher = rollout_loss(model, planes, occ, past, future, 2, 1, replace(cfg, pushforward=False))[1]
     assert pushed == pytest.approx(float(expected), rel=1e-5)
     assert teacher["triplane"] != pytest.approx(pushed, rel=1e-3)  # ground-truth history differs
+
+
+def test_aligned_window_keeps_a_static_world_still():
+    # a static world seen by an ego driving 0.8 m (2 voxels) per frame along x: moved into the
+    # present frame, every frame shows the present's content wherever that frame saw it
+    world = torch.randint(0, 17, (60, 12, 4), dtype=torch.uint8)
+    occ = torch.stack([world[2 * t : 2 * t + 16] for t in range(11)])[None]  # frame t sees cells 2t..2t+15
+    poses = torch.eye(4).repeat(1, 11, 1, 1)
+    poses[0, :, 0, 3] = 0.8 * torch.arange(11.0)
+    model = tiny_world_model()
+    planes, moved = ego_aligned_window(model, occ, poses)
+    present = occ[0, PRESENT]
+    for t in range(11):
+        seen = moved[0, t] != 255
+        assert torch.equal(moved[0, t][seen], present[seen])
+        assert seen.sum() == 12 * 4 * (16 - 2 * abs(t - PRESENT))
+    # the future targets are encoded with the present's content where they did not look
+    assert torch.allclose(planes.xy[:, -1], model.encode_sequence(occ[:, PRESENT:PRESENT + 1]).xy[:, 0])

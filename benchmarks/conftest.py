@@ -13,8 +13,9 @@ from collections import defaultdict
 def _ratios(benchmarks) -> dict[str, dict[str, float]]:
     by_group: dict[str, dict[str, object]] = defaultdict(dict)
     for bench in benchmarks:
-        impl = bench.params["impl"]
-        by_group[bench.group][impl] = bench
+        impl = (bench.params or {}).get("impl")  # unparametrised benchmarks (data, training) have no pair
+        if impl is not None:
+            by_group[bench.group][impl] = bench
     out = {}
     for group, pair in sorted(by_group.items()):
         if len(pair) != 2:

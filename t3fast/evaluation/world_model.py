@@ -68,7 +68,7 @@ def t3former_method(model: T3Former, gt_ego: bool = False) -> Method:
         poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
         past = model.encode_history(batch.past_occ, poses)
         steer = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else None
-        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer)
+        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer, batch.past_occ[:, -1])
         present = past.map(lambda p: p[:, -1])
         return MethodOutput(out.labels, None if gt_ego else out.actions, model.decoder.predict(present))
 
@@ -204,9 +204,10 @@ def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 2, 
     batch = sample_batch.to(device)
     poses, actions = split_past_motion(batch.ego_poses[:1, : PRESENT + 1])
     past = model.encode_history(batch.past_occ[:1], poses)
+    present = batch.past_occ[:1, -1]
 
     def step() -> None:
-        model.forecast_from_triplanes(past, actions, NUM_FUTURE)
+        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 

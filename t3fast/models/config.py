@@ -105,6 +105,9 @@ class WorldModelConfig:
     # frame decoded in its own ego frame from its pose); False: the papers' formulation, each
     # frame in its own ego frame
     ego_aligned: bool = False
+    # ego-aligned forecasts keep the present frame's observed static world (see
+    # t3fast.models.world_model.observed_static); False: decoded frames only
+    static_from_present: bool = True
 
     def __post_init__(self) -> None:
         if not 1 <= self.scales <= len(self.forecaster_widths):

@@ -7,7 +7,7 @@ import dataclasses
 import torch
 
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
-from t3fast.models.world_model import T3Former
+from t3fast.models.world_model import T3Former, observed_static
 
 from .test_autoencoder import TINY, random_labels
 
@@ -76,7 +76,8 @@ def test_planning_loss_trains_the_planner_not_the_forecaster():
 
 
 def aligned(model: T3Former) -> T3Former:
-    model.ego_aligned = True
+    """The ego-aligned model with decoded frames only (``observed_static`` is tested on its own)."""
+    model.ego_aligned, model.static_from_present = True, False
     return model
 
 
@@ -116,3 +117,23 @@ def test_past_displacements_stand_in_for_poses():
     by_actions = model.forecast(past, torch.tensor([[[0.8, 0.0]] * 4]), steps=2)
     assert torch.equal(by_poses.labels, by_actions.labels)
     torch.testing.assert_close(by_poses.actions, by_actions.actions)
+
+
+def test_observed_static_keeps_the_observed_world_and_the_forecast_agents():
+    present = torch.full((1, 16, 12, 4), 17, dtype=torch.uint8)
+    present[..., 0] = 11  # road
+    present[:, 3, :, 1:] = 15  # a thin wall the latent lost
+    present[:, 8, 5, 1] = 4  # a car ...
+    decoded = present.clone()
+    decoded[:, 3, :, 1:] = 17
+    decoded[:, 8, 5, 1] = 17
+    decoded[:, 9, 5, 1] = 4  # ... that the forecast moved one cell on
+    decoded[:, -1, :, 2] = 16  # a tree at the forecast's edge
+    still = observed_static(decoded[:, None], present, torch.zeros(1, 1, 3))[:, 0]
+    assert (still[:, 3, :, 1:] == 15).all()  # the wall as observed
+    assert still[0, 9, 5, 1] == 4 and still[0, 8, 5, 1] == 17  # the car where the forecast put it
+    # 0.8 m on (2 columns): the last 2 columns are beyond the present grid; what the forecast
+    # continues there is kept for the road and dropped (free) for everything else
+    on = observed_static(decoded[:, None].expand(1, 1, -1, -1, -1).clone(), present, torch.tensor([[[0.8, 0.0, 0.0]]]))
+    assert (on[0, 0, -2:, :, 0] == 11).all() and (on[0, 0, -2:, :, 2] == 17).all()
+    assert (on[0, 0, 1, :, 1:] == 15).all()  # the wall moved back with the ego's motion

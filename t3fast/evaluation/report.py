@@ -45,7 +45,9 @@ def evaluate_methods(
     progress: bool = True,
 ) -> dict[str, dict]:
     """The ``metrics.json`` mapping: each model (scores, speed, parameters) and the baselines
-    (speed and parameters null)."""
+    (speed and parameters null). An ego-aligned model also gets ``<name>_gt_ego`` (its forecast
+    steered along the true future poses: uses ground-truth ego motion) and, when it keeps the
+    observed static world, ``<name>_decoded`` (decoded frames only)."""
     results: dict[str, dict] = {}
     for name, model in models.items():
         model.to(device).eval()
@@ -53,11 +55,16 @@ def evaluate_methods(
                                     progress=progress, desc=name)
         record.update(measure_speed(model, collate_samples([dataset[indices[0]]])))
         results[name] = record
-        if model.ego_aligned:  # the steered forecast along the true future poses
-            record = evaluate_forecasts(t3former_method(model, gt_ego=True), dataset, indices, device=device,
-                                        use_mask=use_mask, progress=progress, desc=f"{name}_gt_ego")
-            record.update(fps=None, peak_memory_mb=None, params=None)
-            results[f"{name}_gt_ego"] = record
+        if model.ego_aligned:
+            results[f"{name}_gt_ego"] = _variant(model, dict(gt_ego=True), dataset, indices, device, use_mask, progress,
+                                                 f"{name}_gt_ego")
+            if model.static_from_present:  # what the latent forecasts on its own, without the observed static world
+                model.static_from_present = False
+                try:
+                    results[f"{name}_decoded"] = _variant(model, {}, dataset, indices, device, use_mask, progress,
+                                                          f"{name}_decoded")
+                finally:
+                    model.static_from_present = True
     if baselines:
         for name, method in BASELINES.items():
             record = evaluate_forecasts(method, dataset, indices, device=device, use_mask=use_mask,
@@ -65,6 +72,16 @@ def evaluate_methods(
             record.update(fps=None, peak_memory_mb=None, params=None)
             results[name] = record
     return results
+
+
+def _variant(model: T3Former, options: dict, dataset: Dataset, indices: list[int], device, use_mask: bool,
+             progress: bool, desc: str) -> dict:
+    """The record of a variant of a model's forecast (``gt_ego``: steered along the true future
+    poses), without speed figures (those are the model's own row)."""
+    record = evaluate_forecasts(t3former_method(model, **options), dataset, indices, device=device, use_mask=use_mask,
+                                progress=progress, desc=desc)
+    record.update(fps=None, peak_memory_mb=None, params=None)
+    return record
 
 
 def _fmt(value, digits: int = 2) -> str:

@@ -92,8 +92,9 @@ def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(metrics) == {"t3former", "copy_paste", "constant_velocity", "constant_turn_rate", "warp_const_vel",
-                            "warp_gt_ego"}
+    assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "copy_paste", "constant_velocity",
+                            "constant_turn_rate", "warp_const_vel", "warp_gt_ego"}
+    assert metrics["t3former_gt_ego"]["l2_at"]["3s"] is None  # steered: plans nothing
     keys = {"miou", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
     assert all(set(m) == keys for m in metrics.values())
     model = metrics["t3former"]
@@ -197,3 +198,37 @@ def test_aligned_window_keeps_a_static_world_still():
         assert seen.sum() == 12 * 4 * (16 - 2 * abs(t - PRESENT))
     # the future targets are encoded with the present's content where they did not look
     assert torch.allclose(planes.xy[:, -1], model.encode_sequence(occ[:, PRESENT:PRESENT + 1]).xy[:, 0])
+
+
+def test_pushforward_planner_continues_from_its_own_plan():
+    """Trained on its own rollouts: the planner's step k sees its own plan of steps 0..k-1,
+    so the action loss of a rollout from step 2 is that of step 2 of a full rollout."""
+    torch.manual_seed(0)
+    model = tiny_world_model().eval()
+    occ = shifting_sequence()
+    planes = model.encode_sequence(occ)
+    past, future = torch.tensor([[[0.5, 0.0]] * 4]), torch.tensor([[[1.0, 0.2]] * 6])
+    cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10, xi=0.0, gamma=0.0)
+    with torch.no_grad():
+        pushed = rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["action"]
+        _, full_actions = model(planes.map(lambda p: p[:, :5]), past, steps=3)[:2]
+        teacher = rollout_loss(model, planes, occ, past, future, 2, 1, replace(cfg, pushforward=False))[1]["action"]
+    assert pushed == pytest.approx(float((full_actions[:, 2] - future[:, 2]).square().sum()), rel=1e-5)
+    assert teacher != pytest.approx(pushed, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_paper_preset_trains(tmp_path):
+    """Two stage-2 steps at the papers' sizes (full 6-step rollouts, ResNet-18 planner) on tiny data."""
+    ae = ["train-ae", "--config", "paper", "train.steps=1", "train.batch_size=1", f"train.out_dir={tmp_path / 'ae'}",
+          *TINY_AE]
+    assert main(ae) == 0
+    wm = ["train-wm", "--config", "paper", "--ae", str(tmp_path / "ae" / "last.pt"), f"train.out_dir={tmp_path / 'wm'}",
+          "train.steps=2", "train.batch_size=1", "train.eval_every=0", "train.log_every=1", "data.train_scenes=1",
+          "data.frames_per_scene=11", "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100"]
+    assert main(wm) == 0
+    events = [json.loads(line) for line in (tmp_path / "wm" / "metrics.jsonl").read_text().splitlines()]
+    assert [e["step"] for e in events if e["event"] == "train"] == [1, 2]
+    model, cfg = load_world_model(tmp_path / "wm" / "last.pt")
+    assert cfg.model.ego_aligned and cfg.loss.rollout_steps == 6
+    assert sum(p.numel() for p in model.parameters()) > 30_000_000

@@ -1,10 +1,12 @@
 """``t3fast demo``: the world model on held-out synthetic scenes, end to end.
 
-Loads the world models shipped in ``t3fast/checkpoints`` (T3Former and its three ablations,
-trained on synthetic data by the commands in the README) or the ones in ``--ckpt-dir``,
+Loads the world models shipped in ``t3fast/checkpoints`` (T3Former and those of its ablations
+that are shipped, trained on synthetic data by the commands in the README) or the ones in
+``--ckpt-dir``,
 evaluates them and the baselines on held-out synthetic test scenes, and writes into the
 output folder ``metrics.json``, ``metrics.md`` and, for a few test windows, pictures of
-past / predicted / ground-truth BEV frames with planned vs true trajectory (PNG and GIF).
+past / predicted / ground-truth BEV frames with planned vs true trajectory (PNG and GIF), and
+for the first one also the forecast steered to a stop.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 import torch
 
 SHIPPED = Path(__file__).parent / "checkpoints"
-MODELS = ("wm-small", "wm-small-no-delta", "wm-small-single-scale", "wm-small-bev")
+MODELS = ("wm-small", "wm-small-own-frames", "wm-small-no-delta", "wm-small-single-scale", "wm-small-bev")
 
 
 def add_demo_command(sub: argparse._SubParsersAction) -> None:
@@ -45,14 +47,22 @@ def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.d
     from t3fast.viz import save_forecast_pictures
 
     written = []
-    for i in indices:
+    for n, i in enumerate(indices):
         sample = dataset[i]
         batch = collate_samples([sample]).to(device)
         forecast = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])
+        name = f"{sample.scene}-t{sample.start:02d}"
         written += save_forecast_pictures(
-            out / f"{sample.scene}-t{sample.start:02d}", sample.past_occ.numpy(), forecast.labels[0].cpu().numpy(),
+            out / name, sample.past_occ.numpy(), forecast.labels[0].cpu().numpy(),
             sample.future_occ.numpy(), forecast.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),
         )
+        if n == 0 and model.ego_aligned:  # steered: the same window if the ego stopped now
+            stop = torch.zeros_like(forecast.actions)
+            steered = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1], future_actions=stop)
+            written += save_forecast_pictures(
+                out / f"{name}-steered-stop", sample.past_occ.numpy(), steered.labels[0].cpu().numpy(),
+                sample.future_occ.numpy(), steered.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),
+            )
     return written
 
 

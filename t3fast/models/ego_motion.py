@@ -74,25 +74,31 @@ def extrapolate_poses(past: Tensor, steps: int) -> Tensor:
     return torch.stack(out, dim=1)
 
 
-def poses_from_displacements(displacements: Tensor, last_heading: Tensor | None = None) -> Tensor:
+def poses_from_displacements(displacements: Tensor) -> Tensor:
     """Future poses from displacements ``[B, S, 2]`` (present frame; the ego at the origin):
     positions are their cumulative sum, each heading is the direction of travel around that
     step (the mean of the incoming and outgoing displacements; the last step's own direction
     at the end). A displacement shorter than 5 cm keeps the previous heading, starting from
-    ``last_heading`` ``[B]`` (default 0, the present heading). Returns ``[B, S, 3]``."""
+    the present heading (0). Returns ``[B, S, 3]``."""
     b, s = displacements.shape[:2]
     xy = displacements.cumsum(1)
     nxt = torch.cat([displacements[:, 1:], displacements[:, -1:]], dim=1)
     direction = displacements + nxt
     heading = torch.atan2(direction[..., 1], direction[..., 0])
     moving = direction.norm(dim=-1) > 0.05
-    prev = torch.zeros(b, dtype=displacements.dtype, device=displacements.device) if last_heading is None \
-        else last_heading
+    prev = torch.zeros(b, dtype=displacements.dtype, device=displacements.device)
     out = []
     for k in range(s):
         prev = torch.where(moving[:, k], heading[:, k], prev)
         out.append(prev)
     return torch.cat([xy, torch.stack(out, dim=1).unsqueeze(-1)], dim=-1)
+
+
+def displacements_from_poses(poses: Tensor) -> Tensor:
+    """Per-step displacements ``[B, S, 2]`` of future poses ``[B, S, 3]`` in the present frame
+    (the ego at the origin): the inverse of :func:`poses_from_displacements`' positions."""
+    xy = poses[..., :2]
+    return torch.cat([xy[:, :1], xy[:, 1:] - xy[:, :-1]], dim=1)
 
 
 def _columns_in(target_in_source: Tensor, grid: tuple[int, int]) -> Tensor:
@@ -133,7 +139,6 @@ def warp_volume(volume: Tensor, target_in_source: Tensor, fill: int = FREE) -> T
 def warp_sequence(frames: Tensor, poses: Tensor, fill: int = FREE) -> Tensor:
     """Frames ``[B, T, X, Y, Z]``, each in its own ego frame with planar pose ``poses``
     ``[B, T, 3]`` in a common reference frame, all resampled into that reference frame."""
-    b, t = frames.shape[:2]
     ref_in_frame = relative(poses, torch.zeros_like(poses))  # the reference frame seen from each frame
     out = warp_volume(frames.flatten(0, 1), ref_in_frame.flatten(0, 1), fill)
     return out.view(frames.shape)

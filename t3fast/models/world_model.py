@@ -22,6 +22,7 @@ from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
+    displacements_from_poses,
     frame_queries,
     planar_poses,
     poses_from_displacements,
@@ -239,16 +240,15 @@ class T3Former(nn.Module):
         decoding to labels. A streaming user encodes each new frame once (papers'
         formulation) and keeps the planes of the previous ones. ``present``: the present
         frame's labels ``[B, X, Y, Z]``, for :func:`observed_static`."""
-        if future_actions is not None:
-            steps = future_actions.shape[1]
-            futures, _ = self.forecaster(past, steps)
-            actions = future_actions[..., :2]
-        else:
+        if future_actions is None:
             futures, _, actions = self.rollout(past, past_actions, steps)
-        if future_actions is not None and future_actions.shape[-1] == 3:
-            poses = future_actions
-        else:
             poses = poses_from_displacements(actions)
+        else:
+            futures, _ = self.forecaster(past, future_actions.shape[1])
+            if future_actions.shape[-1] == 3:  # given as poses
+                poses, actions = future_actions, displacements_from_poses(future_actions)
+            else:
+                actions, poses = future_actions, poses_from_displacements(future_actions)
         labels = self.decode_frames(futures, poses)
         if present is not None and self.ego_aligned and self.static_from_present:
             labels = observed_static(labels, present, poses)

@@ -137,3 +137,12 @@ def test_observed_static_keeps_the_observed_world_and_the_forecast_agents():
     on = observed_static(decoded[:, None].expand(1, 1, -1, -1, -1).clone(), present, torch.tensor([[[0.8, 0.0, 0.0]]]))
     assert (on[0, 0, -2:, :, 0] == 11).all() and (on[0, 0, -2:, :, 2] == 17).all()
     assert (on[0, 0, 1, :, 1:] == 15).all()  # the wall moved back with the ego's motion
+
+
+def test_future_poses_give_their_displacements():
+    model = aligned(tiny_world_model()).eval()
+    poses = torch.tensor([[[0.8, 0.0, 0.0], [1.6, 0.1, 0.1], [2.4, 0.3, 0.2]]])
+    out = model.forecast(_past(), torch.eye(4).repeat(1, 5, 1, 1), future_actions=poses)
+    assert torch.equal(out.poses, poses)
+    torch.testing.assert_close(out.trajectory, poses[..., :2])
+    torch.testing.assert_close(out.actions, torch.tensor([[[0.8, 0.0], [0.8, 0.1], [0.8, 0.2]]]))

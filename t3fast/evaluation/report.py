@@ -59,12 +59,8 @@ def evaluate_methods(
             results[f"{name}_gt_ego"] = _variant(model, dict(gt_ego=True), dataset, indices, device, use_mask, progress,
                                                  f"{name}_gt_ego")
             if model.static_from_present:  # what the latent forecasts on its own, without the observed static world
-                model.static_from_present = False
-                try:
-                    results[f"{name}_decoded"] = _variant(model, {}, dataset, indices, device, use_mask, progress,
-                                                          f"{name}_decoded")
-                finally:
-                    model.static_from_present = True
+                results[f"{name}_decoded"] = _variant(model, dict(keep_static=False), dataset, indices, device,
+                                                      use_mask, progress, f"{name}_decoded")
     if baselines:
         for name, method in BASELINES.items():
             record = evaluate_forecasts(method, dataset, indices, device=device, use_mask=use_mask,

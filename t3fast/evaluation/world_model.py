@@ -59,16 +59,18 @@ class MethodOutput:
 Method = Callable[[DrivingBatch], MethodOutput]
 
 
-def t3former_method(model: T3Former, gt_ego: bool = False) -> Method:
+def t3former_method(model: T3Former, gt_ego: bool = False, keep_static: bool = True) -> Method:
     """The world model: encode the 5 past frames (moved into the present frame with the past
     poses when the model is ego-aligned), forecast 6 steps, plan. ``gt_ego``: the steered
-    forecast along the TRUE future poses (uses ground-truth ego motion)."""
+    forecast along the TRUE future poses (uses ground-truth ego motion). ``keep_static=False``:
+    decoded frames only, without the observed static world (``observed_static``)."""
 
     def run(batch: DrivingBatch) -> MethodOutput:
         poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
         past = model.encode_history(batch.past_occ, poses)
         steer = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else None
-        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer, batch.past_occ[:, -1])
+        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer,
+                                            batch.past_occ[:, -1] if keep_static else None)
         present = past.map(lambda p: p[:, -1])
         return MethodOutput(out.labels, None if gt_ego else out.actions, model.decoder.predict(present))
 

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import torch
 
+from t3fast.cli_args import non_negative_int, positive_int
+
 SHIPPED = Path(__file__).parent / "checkpoints"
 MODELS = ("wm-small", "wm-small-own-frames", "wm-small-no-delta", "wm-small-single-scale", "wm-small-bev")
 
@@ -26,9 +28,9 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--out", type=Path, default=Path("demo"), help="output folder")
     demo.add_argument("--ckpt-dir", type=Path, default=SHIPPED,
                       help="folder with wm-small*.pt checkpoints (default: the shipped ones)")
-    demo.add_argument("--scenes", type=int, default=10, help="held-out synthetic test scenes")
-    demo.add_argument("--stride", type=int, default=8, help="frames between evaluated windows of a scene")
-    demo.add_argument("--pictures", type=int, default=3, help="test windows drawn as PNG and GIF")
+    demo.add_argument("--scenes", type=positive_int, default=10, help="held-out synthetic test scenes")
+    demo.add_argument("--stride", type=positive_int, default=8, help="frames between evaluated windows of a scene")
+    demo.add_argument("--pictures", type=non_negative_int, default=3, help="test windows drawn as PNG and GIF")
     demo.set_defaults(func=_demo)
 
 

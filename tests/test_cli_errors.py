@@ -61,6 +61,8 @@ def test_checkpoint_kinds_are_named(tmp_path, stage1_ckpt, capsys):
          "argument --stride: must be at least 1, got -1"),
         (["forecast", "--data", ".", "--ckpt", "c", "--out", "o", "--pictures", "-1"],
          "argument --pictures: must be at least 0, got -1"),
+        (["demo", "--scenes", "0"], "argument --scenes: must be at least 1, got 0"),
+        (["demo", "--stride", "0"], "argument --stride: must be at least 1, got 0"),
     ],
 )
 def test_bad_numbers_are_refused_by_the_parser(argv, message, capsys):

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from t3fast.models.ego_motion import extrapolate_poses, planar_poses, unwarp_sequence
-from t3fast.models.planner import continue_motion
 
 
 def copy_paste(past_occ: Tensor, steps: int = 6) -> Tensor:
@@ -19,16 +17,6 @@ def constant_velocity(past_actions: Tensor, steps: int = 6) -> Tensor:
     present frame, so no rotation is needed). ``[B, T, 2] -> [B, steps, 2]`` displacements;
     ``.cumsum(1)`` gives the trajectory."""
     return past_actions[:, -1:].expand(-1, steps, 2).clone()
-
-
-def constant_turn_rate(past_actions: Tensor, steps: int = 6) -> Tensor:
-    """Constant speed and turn rate: each displacement is the previous one turned by the angle
-    between the last two past ones (the untrained planner's plan). ``[B, T, 2] -> [B, steps, 2]``."""
-    actions, out = past_actions, []
-    for _ in range(steps):
-        out.append(continue_motion(actions))
-        actions = torch.cat([actions, out[-1].unsqueeze(1)], dim=1)
-    return torch.stack(out, dim=1)
 
 
 def warp_present(past_occ: Tensor, future_poses: Tensor) -> Tensor:

@@ -26,7 +26,6 @@ from tqdm import tqdm
 
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingBatch, collate_samples
 from t3fast.evaluation.baselines import (
-    constant_turn_rate,
     constant_velocity,
     copy_paste,
     warp_const_vel,
@@ -35,6 +34,7 @@ from t3fast.evaluation.baselines import (
 from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
 from t3fast.models.ego_motion import planar_poses
+from t3fast.models.planner import constant_turn_rate
 from t3fast.models.world_model import T3Former, split_past_motion
 
 OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
@@ -70,7 +70,7 @@ def t3former_method(model: T3Former, gt_ego: bool = False, keep_static: bool = T
         past = model.encode_history(batch.past_occ, poses)
         steer = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else None
         out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer,
-                                            batch.past_occ[:, -1] if keep_static else None)
+                                            batch.past_occ[:, -1] if keep_static else None, poses)
         present = past.map(lambda p: p[:, -1])
         return MethodOutput(out.labels, None if gt_ego else out.actions, model.decoder.predict(present))
 

@@ -88,6 +88,16 @@ def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     return torch.stack([c * last[:, 0] - s * last[:, 1], s * last[:, 0] + c * last[:, 1]], dim=-1)
 
 
+def constant_turn_rate(past_actions: Tensor, steps: int = 6) -> Tensor:
+    """Constant speed and turn rate: each displacement is the previous one turned by the angle
+    between the last two past ones (the untrained planner's plan). ``[B, T, 2] -> [B, steps, 2]``."""
+    actions, out = past_actions, []
+    for _ in range(steps):
+        out.append(continue_motion(actions))
+        actions = torch.cat([actions, out[-1].unsqueeze(1)], dim=1)
+    return torch.stack(out, dim=1)
+
+
 class MotionPlanner(nn.Module):
     """Args:
         channels: triplane channels C.

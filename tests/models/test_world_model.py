@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
-from t3fast.models.world_model import T3Former, observed_static
+from t3fast.models.ego_motion import poses_from_displacements
+from t3fast.models.planner import constant_turn_rate
+from t3fast.models.world_model import T3Former, observed_static, planned_poses
 
 from .test_autoencoder import TINY, random_labels
 
@@ -122,21 +125,50 @@ def test_past_displacements_stand_in_for_poses():
 def test_observed_static_keeps_the_observed_world_and_the_forecast_agents():
     present = torch.full((1, 16, 12, 4), 17, dtype=torch.uint8)
     present[..., 0] = 11  # road
-    present[:, 3, :, 1:] = 15  # a thin wall the latent lost
+    present[:, 3, :, 1:] = 15  # a thin wall ...
     present[:, 8, 5, 1] = 4  # a car ...
-    decoded = present.clone()
-    decoded[:, 3, :, 1:] = 17
+    reference = present.clone()
+    reference[:, 3, :, 1:] = 17  # ... the latent lost
+    decoded = reference.clone()
     decoded[:, 8, 5, 1] = 17
     decoded[:, 9, 5, 1] = 4  # ... that the forecast moved one cell on
+    decoded[:, 3, 2, 1] = 4  # a car the forecast put into the wall
+    decoded[:, 12, 7, 2] = 16  # a tree that is not an agent's change
     decoded[:, -1, :, 2] = 16  # a tree at the forecast's edge
-    still = observed_static(decoded[:, None], present, torch.zeros(1, 1, 3))[:, 0]
-    assert (still[:, 3, :, 1:] == 15).all()  # the wall as observed
+    still = observed_static(decoded[:, None], reference[:, None], present, torch.zeros(1, 1, 3))[:, 0]
+    assert (still[:, 3, :, 1:] == 15).all()  # the wall as observed, the car refused there
     assert still[0, 9, 5, 1] == 4 and still[0, 8, 5, 1] == 17  # the car where the forecast put it
+    assert still[0, 12, 7, 2] == 17 and (still[0, -1, :, 2] == 17).all()  # only agents' changes edit
+    unchanged = observed_static(reference[:, None], reference[:, None], present, torch.zeros(1, 1, 3))[:, 0]
+    assert torch.equal(unchanged, present)  # no predicted change: the present frame exactly
     # 0.8 m on (2 columns): the last 2 columns are beyond the present grid; what the forecast
     # continues there is kept for the road and dropped (free) for everything else
-    on = observed_static(decoded[:, None].expand(1, 1, -1, -1, -1).clone(), present, torch.tensor([[[0.8, 0.0, 0.0]]]))
+    moved_on = torch.tensor([[[0.8, 0.0, 0.0]]])
+    on = observed_static(decoded[:, None], reference[:, None], present, moved_on)
     assert (on[0, 0, -2:, :, 0] == 11).all() and (on[0, 0, -2:, :, 2] == 17).all()
     assert (on[0, 0, 1, :, 1:] == 15).all()  # the wall moved back with the ego's motion
+
+
+def test_planned_headings_continue_the_observed_yaw_rate():
+    # an ego on a circle turning 0.1 rad per 1 m step: poses exact, displacements chords
+    yaw = 0.1 * torch.arange(-4.0, 7.0)
+    radius = 1 / (2 * math.sin(0.05))
+    xy = torch.stack([radius * torch.sin(yaw), radius * (1 - torch.cos(yaw))], -1)
+    poses = torch.cat([xy, yaw[:, None]], -1)[None]
+    past, future = poses[:, :5], poses[:, 5:]
+    actions = past[:, 1:, :2] - past[:, :-1, :2]
+    plan = constant_turn_rate(actions, 6)
+    torch.testing.assert_close(planned_poses(plan, actions, past), future, atol=1e-4, rtol=0)
+    # a plan turned 0.05 rad more than constant turn rate at every step turns its headings with it
+    extra = torch.stack([torch.stack([a[0] * math.cos(0.05) - a[1] * math.sin(0.05),
+                                      a[0] * math.sin(0.05) + a[1] * math.cos(0.05)]) for a in plan[0]])
+    torch.testing.assert_close(planned_poses(extra[None], actions, past)[..., 2], future[..., 2] + 0.05)
+    # a standing ego: a small correction does not swing its heading
+    still = torch.zeros(1, 4, 2)
+    nudge = torch.tensor([[[0.06, -0.08]] * 6])
+    assert planned_poses(nudge, still, torch.zeros(1, 5, 3))[..., 2].abs().max() == 0
+    # without past poses, the heading is the direction of travel
+    torch.testing.assert_close(planned_poses(plan, actions), poses_from_displacements(plan))
 
 
 def test_future_poses_give_their_displacements():

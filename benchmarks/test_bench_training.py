@@ -1,14 +1,26 @@
-"""One stage-1 training step (small autoencoder, batch 2, sampled points) with the fused
-decoder versus the reference decoder, inside the same task and optimiser; the ratio is the
-training-throughput gain (samples/s = 2 / time)."""
+"""Training steps. Stage 1 (small autoencoder, batch 2, sampled points) with the fused decoder
+versus the reference decoder, inside the same task and optimiser; the ratio is the
+training-throughput gain (samples/s = 2 / time). Stage 2 (the world model, batch 1) with and
+without encoding only the frames a rollout reads."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import pytest
 import torch
 
-from t3fast.data.synthetic import SyntheticFrames
+from t3fast.data.synthetic import SyntheticDriving, SyntheticFrames
+from t3fast.models.config import WORLD_MODELS, named_config
+from t3fast.models.world_model import T3Former
 from t3fast.training.autoencoder import AutoencoderTask, preset
+from t3fast.training.world_model import (
+    WorldLossConfig,
+    collate_windows,
+    ego_aligned_window,
+    rollout_frames,
+    rollout_loss,
+)
 
 
 @pytest.mark.parametrize("impl", ["fused", "reference"])
@@ -31,3 +43,29 @@ def test_stage1_training_step(benchmark, impl):
 
     benchmark.pedantic(step, rounds=5, warmup_rounds=1)
     benchmark.extra_info["samples_per_s"] = 2 / benchmark.stats.stats.median
+
+
+@pytest.mark.parametrize("encode", ["rollout frames", "all frames"])
+def test_stage2_training_step(benchmark, encode):
+    """One stage-2 step of the ``small`` preset (ego-aligned window, one-step rollout from
+    future step 3 with pushforward, backward, AdamW): encoding only the frames the rollout
+    reads (the trainer's way) versus all 11 frames of the window."""
+    benchmark.group = "stage-2 training step (small, batch 1)"
+    torch.manual_seed(0)
+    world = dataclasses.replace(WORLD_MODELS["small"], ego_aligned=True)
+    model = T3Former.from_config(named_config("small"), world).train()
+    optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
+    batch = collate_windows([SyntheticDriving("val", 1, 20, stride=9)[0]])
+    loss_cfg = WorldLossConfig(rollout_steps=1)
+    first = 3
+    frames = rollout_frames(first, 1, loss_cfg.pushforward) if encode == "rollout frames" else None
+
+    def step():
+        planes, occ = ego_aligned_window(model, batch.occ, batch.ego_poses, frames)
+        loss, _ = rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, 1, loss_cfg)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    benchmark.pedantic(step, rounds=3, warmup_rounds=1)
+    benchmark.extra_info["samples_per_s"] = 1 / benchmark.stats.stats.median

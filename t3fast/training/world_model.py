@@ -21,6 +21,7 @@ and targets, a fraction of the cost).
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -84,6 +85,7 @@ class Stage2Config:
     autoencoder_ckpt: str = "runs/ae-small/best.pt"
     autoencoder: AutoencoderConfig | None = None
     decoder_lr_scale: float = 0.1  # the pretrained decoder is fine-tuned at this fraction of train.lr; 0 freezes it
+    planner_lr_scale: float = 1.0  # the planner's fraction of train.lr; 0 freezes it
     model: WorldModelConfig = field(default_factory=WorldModelConfig)
     data: SequencesConfig = field(default_factory=SequencesConfig)
     loss: WorldLossConfig = field(default_factory=WorldLossConfig)
@@ -99,7 +101,7 @@ def _small(out: str, ae: str = "small", ego_aligned: bool = True, **model) -> St
         decoder_lr_scale=0.0,
         data=SequencesConfig(train_scenes=30, stride=2),
         loss=WorldLossConfig(rollout_steps=1),
-        train=TrainConfig(steps=900, batch_size=1, lr=1e-3, warmup_steps=50, log_every=25, eval_every=300,
+        train=TrainConfig(steps=300, batch_size=1, lr=3e-4, warmup_steps=30, log_every=25, eval_every=150,
                           eval_at_start=True, ckpt_every=100, out_dir=f"runs/{out}"),
     )
 
@@ -181,7 +183,9 @@ def collate_windows(items: list) -> SequenceBatch:
 
 
 @torch.no_grad()
-def ego_aligned_window(model: T3Former, occ: Tensor, ego_poses: Tensor) -> tuple[Triplane, Tensor]:
+def ego_aligned_window(
+    model: T3Former, occ: Tensor, ego_poses: Tensor, frames: Sequence[int] | None = None
+) -> tuple[Triplane, Tensor]:
     """The 11 frames of windows ``occ`` ``[B, 11, X, Y, Z]`` moved into the present ego frame
     (poses ``[B, 11, 4, 4]``): (their encoded planes ``[B, 11, C, H, W]``, the moved labels with
     ``IGNORE`` where a frame did not see that part of the present grid).
@@ -189,13 +193,34 @@ def ego_aligned_window(model: T3Former, occ: Tensor, ego_poses: Tensor) -> tuple
     The past frames are encoded as at inference (:meth:`T3Former.encode_history`: what a past
     frame did not see is free). A future frame's target keeps the present frame's content
     where that future frame did not look: the static world does not vanish behind the ego.
+    ``frames``: encode only these (a rollout reads a few; encoding is half a step's cost), the
+    planes of the others stay zero.
     """
     poses = planar_poses(ego_poses, PRESENT)
     moved = warp_sequence(occ, poses, fill=IGNORE)
     unseen = moved == IGNORE
     history = moved[:, : PRESENT + 1].masked_fill(unseen[:, : PRESENT + 1], FREE)
     future = torch.where(unseen[:, PRESENT + 1 :], occ[:, PRESENT : PRESENT + 1], moved[:, PRESENT + 1 :])
-    return model.encode_sequence(torch.cat([history, future], dim=1)), moved
+    inputs = torch.cat([history, future], dim=1)
+    if frames is None:
+        return model.encode_sequence(inputs), moved
+    index = torch.tensor(sorted(set(frames)), device=occ.device)
+    encoded = model.encode_sequence(inputs[:, index])
+
+    def scatter(p: Tensor) -> Tensor:
+        full = p.new_zeros(p.shape[0], occ.shape[1], *p.shape[2:])
+        full[:, index] = p
+        return full
+
+    return encoded.map(scatter), moved
+
+
+def rollout_frames(first: int, steps: int, pushforward: bool) -> list[int]:
+    """Window frames a rollout of ``steps`` steps from future step ``first`` reads: the past
+    and present, the encoded future frames it starts from (none with pushforward: its own
+    predictions), and its targets."""
+    start = PRESENT + 1 + (first if pushforward else 0)
+    return list(range(PRESENT + 1)) + list(range(start, PRESENT + 1 + first + steps))
 
 
 def load_autoencoder_into(model: T3Former, weights: dict[str, Tensor]) -> None:
@@ -268,6 +293,8 @@ class WorldModelTask:
         load_autoencoder_into(model, self._stage1["model"])
         if self.cfg.decoder_lr_scale == 0:
             model.decoder.requires_grad_(False)  # still passes the occupancy loss on to the forecaster
+        if self.cfg.planner_lr_scale == 0:
+            model.planner.requires_grad_(False)
         self._encoder = model.encoder
         return model
 
@@ -295,15 +322,16 @@ class WorldModelTask:
 
     def training_step(self, model: nn.Module, batch: SequenceBatch) -> tuple[Tensor, dict[str, float]]:
         core = model.module if hasattr(model, "module") else model
-        occ = batch.occ
-        if core.ego_aligned:
-            planes, occ = ego_aligned_window(core, batch.occ, batch.ego_poses)
-        else:
-            planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
         steps = self.cfg.loss.rollout_steps
         if not 1 <= steps <= NUM_FUTURE:
             raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")
         first = int(torch.randint(0, NUM_FUTURE - steps + 1, ()))
+        occ = batch.occ
+        if core.ego_aligned:
+            frames = rollout_frames(first, steps, self.cfg.loss.pushforward)
+            planes, occ = ego_aligned_window(core, batch.occ, batch.ego_poses, frames)
+        else:
+            planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
         return rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, steps, self.cfg.loss)
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
@@ -339,7 +367,8 @@ class WorldModelTask:
     def lr_scales(self) -> dict[str, float]:
         # at the full rate, the occupancy loss of early, poor forecasts overwrites the decoder
         # (reconstruction fell from 92 to 43 mIoU within 200 steps)
-        return {"decoder": self.cfg.decoder_lr_scale} if self.cfg.decoder_lr_scale else {}
+        scales = {"decoder": self.cfg.decoder_lr_scale, "planner": self.cfg.planner_lr_scale}
+        return {name: scale for name, scale in scales.items() if scale and scale != 1.0}
 
     def config_dict(self) -> dict:
         return config_to_dict(self.cfg)

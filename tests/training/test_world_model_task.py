@@ -22,6 +22,7 @@ from t3fast.training.world_model import (
     ego_aligned_window,
     load_world_model,
     preset,
+    rollout_frames,
     rollout_loss,
 )
 
@@ -245,3 +246,21 @@ def test_paper_preset_trains(tmp_path):
     model, cfg = load_world_model(tmp_path / "wm" / "last.pt")
     assert cfg.model.ego_aligned and cfg.loss.rollout_steps == 6
     assert sum(p.numel() for p in model.parameters()) > 30_000_000
+
+
+def test_aligned_window_encodes_only_the_frames_a_rollout_reads():
+    torch.manual_seed(0)
+    occ = torch.randint(0, 18, (1, 11, 16, 12, 4), dtype=torch.uint8)
+    poses = torch.eye(4).repeat(1, 11, 1, 1)
+    poses[0, :, 0, 3] = 0.8 * torch.arange(11.0)
+    model = tiny_world_model()
+    full, moved = ego_aligned_window(model, occ, poses)
+    frames = rollout_frames(first=3, steps=1, pushforward=True)
+    assert frames == [0, 1, 2, 3, 4, 8]  # the past and present, and the one target
+    assert rollout_frames(first=3, steps=1, pushforward=False) == list(range(9))
+    some, moved_some = ego_aligned_window(model, occ, poses, frames)
+    assert torch.equal(moved, moved_some)
+    for a, b in zip(full, some):
+        torch.testing.assert_close(b[:, frames], a[:, frames], atol=1e-4, rtol=1e-4)
+        others = [t for t in range(11) if t not in frames]
+        assert not b[:, others].any()

@@ -101,7 +101,7 @@ def _small(out: str, ae: str = "small", ego_aligned: bool = True, **model) -> St
         decoder_lr_scale=0.0,
         data=SequencesConfig(train_scenes=30, stride=2),
         loss=WorldLossConfig(rollout_steps=1),
-        train=TrainConfig(steps=300, batch_size=1, lr=3e-4, warmup_steps=30, log_every=25, eval_every=150,
+        train=TrainConfig(steps=150, batch_size=1, lr=3e-4, warmup_steps=15, log_every=25, eval_every=150,
                           eval_at_start=True, ckpt_every=100, out_dir=f"runs/{out}"),
     )
 

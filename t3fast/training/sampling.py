@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from t3fast.data.classes import FREE, GRID_SHAPE, IGNORE
 
-__all__ = ["near_surface_free", "point_voxels", "sample_query_points", "voxel_points"]
+__all__ = ["near_surface_free", "point_voxels", "sample_changed_points", "sample_query_points", "voxel_points"]
 
 
 def voxel_points(indices: torch.Tensor, grid: tuple[int, int, int] = GRID_SHAPE) -> torch.Tensor:
@@ -118,7 +118,40 @@ def sample_query_points(
         picks = [_fill_slot(_pick(m[b].reshape(-1), n, generator), values, n, ignore_index) for m, n in slots]
         flat_idx.append(torch.cat([p[0] for p in picks]))
         targets.append(torch.cat([p[1] for p in picks]))
-    flat = torch.stack(flat_idx)  # [B, N]
+    return _flat_points(torch.stack(flat_idx), grid), torch.stack(targets)
+
+
+def _flat_points(flat: torch.Tensor, grid: tuple[int, int, int]) -> torch.Tensor:
+    """Flat voxel indices ``[B, N]`` -> centre coordinates ``[B, N, 3]``."""
     ny, nz = grid[1], grid[2]
-    xyz = torch.stack([flat // (ny * nz), (flat // nz) % ny, flat % nz], dim=-1)
-    return voxel_points(xyz, grid), torch.stack(targets)
+    return voxel_points(torch.stack([flat // (ny * nz), (flat // nz) % ny, flat % nz], dim=-1), grid)
+
+
+def sample_changed_points(
+    labels: torch.Tensor,
+    before: torch.Tensor,
+    count: int,
+    generator: torch.Generator | None = None,
+    ignore_index: int = IGNORE,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Query points where ``labels`` differ from ``before`` (both ``[B, X, Y, Z]``, same frame):
+    what appeared, vanished or changed class, e.g. agents that moved. A forecaster that copies
+    its input is right almost everywhere, so these few voxels carry the signal of motion.
+
+    Returns ``points`` ``[B, count, 3]`` and ``targets`` ``[B, count]`` (the ``labels`` there),
+    padded like :func:`sample_query_points`; ignore voxels (of either) are never sampled."""
+    if labels.shape != before.shape or labels.dim() != 4:
+        raise ValueError(f"sample_changed_points: labels {tuple(labels.shape)} and before {tuple(before.shape)} "
+                         "must both be [B, X, Y, Z]")
+    if count < 0:
+        raise ValueError("sample_changed_points: count must be >= 0")
+    changed = (labels != before) & (labels != ignore_index) & (before != ignore_index)
+    flat_idx, targets = [], []
+    for b in range(labels.shape[0]):
+        idx, target = _fill_slot(_pick(changed[b].reshape(-1), count, generator), labels[b].reshape(-1).long(),
+                                 count, ignore_index)
+        flat_idx.append(idx)
+        targets.append(target)
+    if not flat_idx:
+        return labels.new_zeros((0, count, 3), dtype=torch.float32), labels.new_zeros((0, count), dtype=torch.long)
+    return _flat_points(torch.stack(flat_idx), tuple(labels.shape[1:])), torch.stack(targets)

@@ -40,7 +40,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.training.checkpoint import AUTOENCODER, WORLD_MODEL, read_checkpoint
 from t3fast.training.config import config_to_dict, load_config
 from t3fast.training.losses import occupancy_loss
-from t3fast.training.sampling import sample_query_points
+from t3fast.training.sampling import sample_changed_points, sample_query_points
 from t3fast.training.trainer import TrainConfig
 from t3fast.training.triplane_cache import cached_scene_triplanes
 
@@ -75,6 +75,7 @@ class WorldLossConfig:
     num_occupied: int = 10_000  # query points per predicted frame
     num_near_free: int = 5_000
     num_far_free: int = 2_000
+    num_changed: int = 0  # more query points where the target differs from the present frame (what moved)
 
 
 @dataclass
@@ -263,6 +264,9 @@ def rollout_loss(
     targets = [PRESENT + 1 + first + j for j in range(steps)]
     slots = (loss.num_occupied, loss.num_near_free, loss.num_far_free)
     queries = [sample_query_points(occ[:, t], *slots) for t in targets]
+    if loss.num_changed:
+        changed = [sample_changed_points(occ[:, t], occ[:, PRESENT], loss.num_changed) for t in targets]
+        queries = [tuple(torch.cat(pair, dim=1) for pair in zip(q, c)) for q, c in zip(queries, changed)]
     futures, predicted, logits = model(history, actions, steps, first, [q[0] for q in queries])
     tri = occ_loss = torch.zeros((), device=occ.device)
     for j, t in enumerate(targets):

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from t3fast.data.classes import CAR, FREE, IGNORE, MANMADE, PEDESTRIAN
-from t3fast.training.sampling import point_voxels, sample_query_points, voxel_points
+from t3fast.training.sampling import point_voxels, sample_changed_points, sample_query_points, voxel_points
 
 GRID = (12, 10, 6)
 N_OCC, N_NEAR, N_FAR = 40, 30, 20
@@ -119,3 +119,23 @@ def test_empty_batch_and_bad_input() -> None:
     assert points.shape == (0, 9, 3) and targets.shape == (0, 9)
     with pytest.raises(ValueError, match="labels must be"):
         sample_query_points(torch.zeros(GRID, dtype=torch.uint8), 2, 3, 4)
+
+
+def test_changed_points_are_where_the_frame_changed() -> None:
+    before = torch.full((2, 8, 6, 4), FREE, dtype=torch.uint8)
+    before[:, :, :, 0] = 11
+    before[0, 2, 3, 1] = 4  # a car ...
+    labels = before.clone()
+    labels[0, 2, 3, 1] = FREE
+    labels[0, 3, 3, 1] = 4  # ... one cell on
+    labels[0, 5, 5, 2] = IGNORE  # unseen: never a target
+    points, targets = sample_changed_points(labels, before, 4)
+    assert points.shape == (2, 4, 3) and targets.shape == (2, 4)
+    voxels = point_voxels(points, (8, 6, 4))
+    got = {(tuple(v.tolist()), int(t)) for v, t in zip(voxels[0], targets[0]) if t != IGNORE}
+    assert got == {((2, 3, 1), FREE), ((3, 3, 1), 4)}
+    assert (targets[1] == IGNORE).all()  # nothing changed: all padding
+    empty = sample_changed_points(labels[:0], before[:0], 4)
+    assert empty[0].shape == (0, 4, 3) and empty[1].shape == (0, 4)
+    with pytest.raises(ValueError, match="must both be"):
+        sample_changed_points(labels, before[:, :4], 4)

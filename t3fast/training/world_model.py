@@ -100,9 +100,13 @@ def _small(out: str, ae: str = "small", ego_aligned: bool = True, **model) -> St
         # the decoder stays as pretrained: CPU-budget forecasts are still too coarse to fine-tune it
         # on (it learns to blur them, and its reconstruction falls)
         decoder_lr_scale=0.0,
+        # the planner stays at constant speed and turn rate: trained for 150 steps its correction
+        # lowered validation mean-L2 from 0.945 to 0.895 m, but the forecasts rendered from its
+        # poses fell from 27.15 to 25.86 Avg mIoU (26.39 with its along-track part only)
+        planner_lr_scale=0.0,
         data=SequencesConfig(train_scenes=30, stride=2),
-        loss=WorldLossConfig(rollout_steps=1),
-        train=TrainConfig(steps=150, batch_size=1, lr=3e-4, warmup_steps=15, log_every=25, eval_every=150,
+        loss=WorldLossConfig(rollout_steps=1, num_changed=5_000),
+        train=TrainConfig(steps=200, batch_size=1, lr=3e-4, warmup_steps=20, log_every=25, eval_every=200,
                           eval_at_start=True, ckpt_every=100, out_dir=f"runs/{out}"),
     )
 

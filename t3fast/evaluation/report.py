@@ -10,10 +10,11 @@ from torch.utils.data import Dataset
 
 from t3fast.data.sample import collate_samples
 from t3fast.evaluation.world_model import (
+    SharedRollout,
     constant_turn_rate_method,
     constant_velocity_method,
     copy_paste_method,
-    evaluate_forecasts,
+    evaluate_many,
     measure_speed,
     t3former_method,
     warp_const_vel_method,
@@ -45,40 +46,29 @@ def evaluate_methods(
     progress: bool = True,
 ) -> dict[str, dict]:
     """The ``metrics.json`` mapping: each model (scores, speed, parameters) and the baselines
-    (speed and parameters null). The first model, when ego-aligned, also gets ``<name>_gt_ego``
-    (its forecast steered along the true future poses: uses ground-truth ego motion) and, when
-    it keeps the observed static world, ``<name>_decoded`` (decoded frames only); the others
-    (the ablations in the demo) get their own row only, which keeps the demo's cost down."""
-    results: dict[str, dict] = {}
+    (speed and parameters null), scored in one pass over the windows. The first model, when
+    ego-aligned, also gets ``<name>_gt_ego`` (its forecast steered along the true future poses:
+    uses ground-truth ego motion) and, when it keeps the observed static world,
+    ``<name>_decoded`` (decoded frames only), both from the same forecasting pass; the others
+    (the ablations in the demo) get their own row."""
+    methods, measured = {}, {}
     for position, (name, model) in enumerate(models.items()):
         model.to(device).eval()
-        record = evaluate_forecasts(t3former_method(model), dataset, indices, device=device, use_mask=use_mask,
-                                    progress=progress, desc=name)
-        record.update(measure_speed(model, collate_samples([dataset[indices[0]]])))
-        results[name] = record
+        shared = SharedRollout(model)
+        methods[name] = t3former_method(model, shared=shared)
+        measured[name] = model
         if position == 0 and model.ego_aligned:
-            results[f"{name}_gt_ego"] = _variant(model, dict(gt_ego=True), dataset, indices, device, use_mask, progress,
-                                                 f"{name}_gt_ego")
-            if model.static_from_present:  # what the latent forecasts on its own, without the observed static world
-                results[f"{name}_decoded"] = _variant(model, dict(keep_static=False), dataset, indices, device,
-                                                      use_mask, progress, f"{name}_decoded")
+            methods[f"{name}_gt_ego"] = t3former_method(model, gt_ego=True, shared=shared)
+            if model.static_from_present:  # what the latent forecasts on its own, without the observed world
+                methods[f"{name}_decoded"] = t3former_method(model, keep_static=False, shared=shared)
     if baselines:
-        for name, method in BASELINES.items():
-            record = evaluate_forecasts(method, dataset, indices, device=device, use_mask=use_mask,
-                                        progress=progress, desc=name)
-            record.update(fps=None, peak_memory_mb=None, params=None)
-            results[name] = record
+        methods.update(BASELINES)
+    results = evaluate_many(methods, dataset, indices, device=device, use_mask=use_mask, progress=progress,
+                            desc="windows")
+    for name, record in results.items():
+        speed = measure_speed(measured[name], collate_samples([dataset[indices[0]]])) if name in measured else {}
+        record.update(speed or dict(fps=None, peak_memory_mb=None, params=None))
     return results
-
-
-def _variant(model: T3Former, options: dict, dataset: Dataset, indices: list[int], device, use_mask: bool,
-             progress: bool, desc: str) -> dict:
-    """The record of a variant of a model's forecast (``gt_ego``: steered along the true future
-    poses), without speed figures (those are the model's own row)."""
-    record = evaluate_forecasts(t3former_method(model, **options), dataset, indices, device=device, use_mask=use_mask,
-                                progress=progress, desc=desc)
-    record.update(fps=None, peak_memory_mb=None, params=None)
-    return record
 
 
 def _fmt(value, digits: int = 2) -> str:

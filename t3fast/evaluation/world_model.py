@@ -16,7 +16,7 @@ decoding of the 6 future frames to labels, after warm-up), ``peak_memory_mb`` an
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -35,7 +35,7 @@ from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.planner import constant_turn_rate
-from t3fast.models.world_model import T3Former, split_past_motion
+from t3fast.models.world_model import T3Former, planned_poses, split_past_motion
 
 OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
 PLAN_KEYS = ("1s", "2s", "3s", "avg")
@@ -59,20 +59,60 @@ class MethodOutput:
 Method = Callable[[DrivingBatch], MethodOutput]
 
 
-def t3former_method(model: T3Former, gt_ego: bool = False, keep_static: bool = True) -> Method:
+class SharedRollout:
+    """One forecasting pass per batch, shared by the rows of one model (``t3former``,
+    ``_gt_ego``, ``_decoded``): the forecaster does not read the ego's motion, so those rows
+    differ only in the poses their frames are rendered from and in keeping the observed
+    world. Holds the last batch's results (rows are scored batch by batch, see
+    :func:`evaluate_many`)."""
+
+    def __init__(self, model: T3Former):
+        self.model = model
+        self._batch: DrivingBatch | None = None
+        self._out: dict = {}
+
+    def __call__(self, batch: DrivingBatch) -> dict:
+        if batch is not self._batch:
+            model = self.model
+            poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
+            past = model.encode_history(batch.past_occ, poses)
+            futures, _, planned = model.rollout(past, actions, NUM_FUTURE)
+            present = past.map(lambda p: p[:, -1])
+            frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
+            self._out = dict(futures=futures, actions=planned, poses=frame_poses, present=present,
+                             reconstruction=model.decoder.predict(present))
+            self._batch = batch
+        return self._out
+
+    def decoded(self, batch: DrivingBatch) -> Tensor:
+        """The forecast's own decoded frames at the planned poses (cached per batch)."""
+        out = self(batch)
+        if "decoded" not in out:
+            out["decoded"] = self.model.decode_frames(out["futures"], out["poses"])
+        return out["decoded"]
+
+
+def t3former_method(
+    model: T3Former, gt_ego: bool = False, keep_static: bool = True, shared: SharedRollout | None = None
+) -> Method:
     """The world model: encode the 5 past frames (moved into the present frame with the past
     poses when the model is ego-aligned), forecast 6 steps, plan. ``gt_ego``: the steered
     forecast along the TRUE future poses (uses ground-truth ego motion). ``keep_static=False``:
-    decoded frames only, without the observed static world (``observed_static``)."""
+    decoded frames only, without the observed static world (``observed_static``). ``shared``:
+    a :class:`SharedRollout` of ``model`` the method reads its forecast from."""
+    shared = SharedRollout(model) if shared is None else shared
 
     def run(batch: DrivingBatch) -> MethodOutput:
-        poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
-        past = model.encode_history(batch.past_occ, poses)
-        steer = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else None
-        out = model.forecast_from_triplanes(past, actions, NUM_FUTURE, steer,
-                                            batch.past_occ[:, -1] if keep_static else None, poses)
-        present = past.map(lambda p: p[:, -1])
-        return MethodOutput(out.labels, None if gt_ego else out.actions, model.decoder.predict(present))
+        out = shared(batch)
+        present = batch.past_occ[:, -1] if keep_static else None
+        if gt_ego:
+            poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
+            labels = model.render(out["futures"], poses, out["present"], present)
+        elif model.ego_aligned:
+            labels = model.render(out["futures"], out["poses"], out["present"], present, shared.decoded(batch))
+        else:
+            labels = model.decode_frames(out["futures"], out["poses"])
+        return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])
 
     return run
 
@@ -126,8 +166,8 @@ def _summaries(
 
 
 @torch.no_grad()
-def evaluate_forecasts(
-    method: Method,
+def evaluate_many(
+    methods: Mapping[str, Method],
     dataset: Dataset,
     indices: list[int] | None = None,
     batch_size: int = 1,
@@ -136,8 +176,11 @@ def evaluate_forecasts(
     progress: bool = True,
     desc: str = "evaluate",
     absent: str = "one",
-) -> dict:
-    """Score ``method`` on the windows ``indices`` of ``dataset`` (``DrivingSample`` items).
+) -> dict[str, dict]:
+    """Score every method of ``methods`` on the windows ``indices`` of ``dataset``
+    (``DrivingSample`` items) in one pass over them: each window is loaded once and every
+    method sees the same batch object (so rows of one model can share its forecast,
+    :class:`SharedRollout`). Returns ``{name: record}``.
 
     Occupancy: one confusion matrix per horizon (1 s, 2 s, 3 s = future frames 2, 4, 6) over
     the whole set, "0 s" from the method's reconstruction of the present frame, "avg" the
@@ -146,29 +189,37 @@ def evaluate_forecasts(
     for small validation sets where "one" inflates the score).
     """
     indices = list(range(len(dataset))) if indices is None else indices
-    occ: dict[str, OccupancyMetrics | None] | None = None
-    plan: PlanningMetrics | None = None
+    occ: dict[str, dict[str, OccupancyMetrics | None] | None] = dict.fromkeys(methods)
+    plan: dict[str, PlanningMetrics | None] = dict.fromkeys(methods)
     batches = [indices[i : i + batch_size] for i in range(0, len(indices), batch_size)]
     for chunk in tqdm(batches, desc=desc, unit="batch", disable=not progress, leave=False):
         batch = collate_samples([dataset[i] for i in chunk]).to(device)
-        out = method(batch)
         mask = batch.mask_camera if use_mask else None
-        if out.labels is not None:
-            if occ is None:
-                occ = {"0s": None, **{h: OccupancyMetrics(device=device) for h in HORIZONS}}
-            for h, step in HORIZONS.items():
-                frame = PRESENT + step
-                occ[h].update(out.labels[:, step - 1], batch.occ[:, frame], None if mask is None else mask[:, frame])
-            if out.reconstruction is not None:
-                occ["0s"] = occ["0s"] or OccupancyMetrics(device=device)
-                occ["0s"].update(out.reconstruction, batch.occ[:, PRESENT],
-                                 None if mask is None else mask[:, PRESENT])
-        if out.actions is not None:
-            plan = plan or PlanningMetrics()
-            future = slice(PRESENT + 1, None)
-            plan.update(out.actions.cumsum(1), batch.future_actions.cumsum(1), batch.boxes[:, future],
-                        batch.box_valid[:, future], batch.box_labels)
-    return _summaries(occ, plan, absent)
+        for name, method in methods.items():
+            out = method(batch)
+            if out.labels is not None:
+                if occ[name] is None:
+                    occ[name] = {"0s": None, **{h: OccupancyMetrics(device=device) for h in HORIZONS}}
+                scores = occ[name]
+                for h, step in HORIZONS.items():
+                    frame = PRESENT + step
+                    scores[h].update(out.labels[:, step - 1], batch.occ[:, frame],
+                                     None if mask is None else mask[:, frame])
+                if out.reconstruction is not None:
+                    scores["0s"] = scores["0s"] or OccupancyMetrics(device=device)
+                    scores["0s"].update(out.reconstruction, batch.occ[:, PRESENT],
+                                        None if mask is None else mask[:, PRESENT])
+            if out.actions is not None:
+                plan[name] = plan[name] or PlanningMetrics()
+                future = slice(PRESENT + 1, None)
+                plan[name].update(out.actions.cumsum(1), batch.future_actions.cumsum(1), batch.boxes[:, future],
+                                  batch.box_valid[:, future], batch.box_labels)
+    return {name: _summaries(occ[name], plan[name], absent) for name in methods}
+
+
+def evaluate_forecasts(method: Method, dataset: Dataset, indices: list[int] | None = None, **options) -> dict:
+    """:func:`evaluate_many` of one method; its record."""
+    return evaluate_many({"method": method}, dataset, indices, **options)["method"]
 
 
 def _peak_rss_mb() -> float | None:
@@ -192,7 +243,7 @@ def _reset_peak_rss() -> bool:
 
 
 @torch.no_grad()
-def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 2, iters: int = 5) -> dict:
+def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 1, iters: int = 3) -> dict:
     """``{"fps", "peak_memory_mb", "params"}`` of the forecasting step at batch 1.
 
     The step is forecaster + planner + decoding of the 6 future frames to labels, from the
@@ -209,7 +260,7 @@ def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 2, 
     present = batch.past_occ[:1, -1]
 
     def step() -> None:
-        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present)
+        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 

@@ -298,8 +298,21 @@ class T3Former(nn.Module):
                 poses, actions = future_actions, displacements_from_poses(future_actions)
             else:
                 actions, poses = future_actions, poses_from_displacements(future_actions)
-        labels = self.decode_frames(futures, poses)
-        if present is not None and self.ego_aligned and self.static_from_present:
-            reference = self.reference_frames(past.map(lambda p: p[:, -1]), labels, present, poses)
-            labels = observed_static(labels, reference, present, poses)
+        labels = self.render(futures, poses, past.map(lambda p: p[:, -1]), present)
         return Forecast(labels, futures, actions, actions.cumsum(1), poses)
+
+    @torch.no_grad()
+    def render(
+        self, futures: list[Triplane], poses: Tensor, present_planes: Triplane, present: Tensor | None = None,
+        decoded: Tensor | None = None,
+    ) -> Tensor:
+        """Future triplanes -> labels uint8 ``[B, S, X, Y, Z]``, each frame in the ego frame of
+        its pose (``poses`` ``[B, S, 3]``): :meth:`decode_frames` (or ``decoded``, its result
+        when already at hand) and, given the present frame's labels ``present``
+        ``[B, X, Y, Z]`` (ego-aligned, ``static_from_present``), the observed present edited by
+        the forecast (:func:`observed_static`; ``present_planes``: the present triplane)."""
+        labels = self.decode_frames(futures, poses) if decoded is None else decoded
+        if present is not None and self.ego_aligned and self.static_from_present:
+            reference = self.reference_frames(present_planes, labels, present, poses)
+            labels = observed_static(labels, reference, present, poses)
+        return labels

@@ -13,6 +13,8 @@ from PIL import Image
 from t3fast.cli import main
 from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
 from t3fast.models.triplane import Triplane
 from t3fast.training.checkpoint import export_weights, load_checkpoint
 from t3fast.training.world_model import (
@@ -264,3 +266,21 @@ def test_aligned_window_encodes_only_the_frames_a_rollout_reads():
         torch.testing.assert_close(b[:, frames], a[:, frames], atol=1e-4, rtol=1e-4)
         others = [t for t in range(11) if t not in frames]
         assert not b[:, others].any()
+
+
+def test_rows_of_one_model_share_one_forecast_per_window(world_ckpt, monkeypatch):
+    """t3former, _gt_ego and _decoded come from one forecasting pass per window, with the same
+    scores as three separate passes."""
+    model, _ = load_world_model(world_ckpt)
+    dataset = SyntheticDriving("test", 1, stride=29)  # 2 windows
+    options = dict(gt_ego={"gt_ego": True}, decoded={"keep_static": False}, plan={})
+    separate = {name: evaluate_forecasts(t3former_method(model, **kw), dataset, progress=False)
+                for name, kw in options.items()}
+    passes = []
+    rollout = model.rollout
+    monkeypatch.setattr(model, "rollout", lambda *a, **k: passes.append(1) or rollout(*a, **k))
+    shared = SharedRollout(model)
+    together = evaluate_many({name: t3former_method(model, shared=shared, **kw) for name, kw in options.items()},
+                             dataset, progress=False)
+    assert len(passes) == len(dataset) == 2
+    assert together == separate

@@ -51,12 +51,11 @@ def evaluate_methods(
     uses ground-truth ego motion) and, when it keeps the observed static world,
     ``<name>_decoded`` (decoded frames only), both from the same forecasting pass; the others
     (the ablations in the demo) get their own row."""
-    methods, measured = {}, {}
+    methods = {}
     for position, (name, model) in enumerate(models.items()):
         model.to(device).eval()
         shared = SharedRollout(model)
         methods[name] = t3former_method(model, shared=shared)
-        measured[name] = model
         if position == 0 and model.ego_aligned:
             methods[f"{name}_gt_ego"] = t3former_method(model, gt_ego=True, shared=shared)
             if model.static_from_present:  # what the latent forecasts on its own, without the observed world
@@ -66,7 +65,7 @@ def evaluate_methods(
     results = evaluate_many(methods, dataset, indices, device=device, use_mask=use_mask, progress=progress,
                             desc="windows")
     for name, record in results.items():
-        speed = measure_speed(measured[name], collate_samples([dataset[indices[0]]])) if name in measured else {}
+        speed = measure_speed(models[name], collate_samples([dataset[indices[0]]])) if name in models else {}
         record.update(speed or dict(fps=None, peak_memory_mb=None, params=None))
     return results
 

@@ -108,10 +108,8 @@ def t3former_method(
         if gt_ego:
             poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
             labels = model.render(out["futures"], poses, out["present"], present)
-        elif model.ego_aligned:
-            labels = model.render(out["futures"], out["poses"], out["present"], present, shared.decoded(batch))
         else:
-            labels = model.decode_frames(out["futures"], out["poses"])
+            labels = model.render(out["futures"], out["poses"], out["present"], present, shared.decoded(batch))
         return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])
 
     return run

@@ -61,12 +61,19 @@ _AGENTS = torch.tensor(AGENT_CLASSES)
 _GROUND = torch.tensor(FLAT_GROUND_CLASSES)
 
 
-def observed_static(decoded: Tensor, reference: Tensor, present: Tensor, poses: Tensor) -> Tensor:
+def present_in_frames(present: Tensor, poses: Tensor) -> Tensor:
+    """The present frame's labels ``[B, X, Y, Z]`` moved into the ego frame of each future pose
+    ``poses`` ``[B, S, 3]``: ``[B, S, X, Y, Z]``, ``IGNORE`` where a frame looks beyond the
+    present grid."""
+    return unwarp_sequence(present.unsqueeze(1).expand(-1, poses.shape[1], *present.shape[1:]), poses, fill=IGNORE)
+
+
+def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor:
     """Future frames as the observed present edited where the forecast moves agents.
 
     The static world does not change in 3 s, and the latent loses detail (thin walls, trunks,
-    small cars), so each future frame starts from the present frame's labels ``present``
-    ``[B, X, Y, Z]`` moved into its ego frame (pose ``poses[:, k]``, ``[B, S, 3]``). The forecast
+    small cars), so each future frame starts from the present frame's labels moved into its
+    ego frame, ``moved`` ``[B, S, X, Y, Z]`` (:func:`present_in_frames`). The forecast
     ``decoded`` ``[B, S, X, Y, Z]`` edits it only where it differs from ``reference`` (the present
     triplane decoded at the same voxels: what the latent shows with no change), the change
     involves an agent class (vehicles and humans move), and the observed voxel is free or an
@@ -76,7 +83,6 @@ def observed_static(decoded: Tensor, reference: Tensor, present: Tensor, poses: 
     sidewalks go on) and everything else is free (continuing walls, trees and cars past the
     edge cost 6.5 IoU points on validation windows; ground alone gained 1.6).
     """
-    moved = unwarp_sequence(present.unsqueeze(1).expand_as(decoded), poses, fill=IGNORE)
     agents, ground = _AGENTS.to(decoded.device), _GROUND.to(decoded.device)
     unseen = moved == IGNORE
     agent_change = (decoded != reference) & (torch.isin(decoded, agents) | torch.isin(reference, agents))
@@ -210,14 +216,14 @@ class T3Former(nn.Module):
             frames.append(self.decoder.predict(t, points).view(-1, *grid))
         return torch.stack(frames, dim=1)
     @torch.no_grad()
-    def reference_frames(self, present_planes: Triplane, decoded: Tensor, present: Tensor, poses: Tensor) -> Tensor:
+    def reference_frames(self, present_planes: Triplane, decoded: Tensor, moved: Tensor, poses: Tensor) -> Tensor:
         """The present triplane (planes ``[B, C, H, W]``) decoded at the voxels of each future
         frame (``decoded`` ``[B, S, X, Y, Z]``, poses ``[B, S, 3]``) where the forecast or the
-        moved present labels ``[B, X, Y, Z]`` show an agent: the only voxels where
-        :func:`observed_static` can take a forecast label that differs from the observed one.
-        Elsewhere ``decoded`` itself (no change), so only ~2 % of the voxels are decoded twice."""
+        present moved into that frame (``moved``, :func:`present_in_frames`) show an agent: the
+        only voxels where :func:`observed_static` can take a forecast label that differs from
+        the observed one. Elsewhere ``decoded`` itself (no change), so only ~2 % of the voxels
+        are decoded twice."""
         agents = _AGENTS.to(decoded.device)
-        moved = unwarp_sequence(present.unsqueeze(1).expand_as(decoded), poses, fill=IGNORE)
         need = torch.isin(decoded, agents) | torch.isin(moved, agents)
         reference = decoded.clone()
         for b in range(decoded.shape[0]):
@@ -313,6 +319,6 @@ class T3Former(nn.Module):
         the forecast (:func:`observed_static`; ``present_planes``: the present triplane)."""
         labels = self.decode_frames(futures, poses) if decoded is None else decoded
         if present is not None and self.ego_aligned and self.static_from_present:
-            reference = self.reference_frames(present_planes, labels, present, poses)
-            labels = observed_static(labels, reference, present, poses)
+            moved = present_in_frames(present, poses)
+            labels = observed_static(labels, self.reference_frames(present_planes, labels, moved, poses), moved)
         return labels

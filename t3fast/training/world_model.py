@@ -348,7 +348,7 @@ class WorldModelTask:
         windows, so every later score can be read against them."""
         from t3fast.evaluation.world_model import (
             copy_paste_method,
-            evaluate_forecasts,
+            evaluate_many,
             t3former_method,
             warp_const_vel_method,
         )
@@ -359,17 +359,15 @@ class WorldModelTask:
         if first:
             self._val = SyntheticDriving("val", data.val_scenes, data.frames_per_scene, stride=data.val_stride)
         indices = list(range(min(len(self._val), data.val_windows)))
-
-        def score(method) -> dict:
-            return evaluate_forecasts(method, self._val, indices, device=device, progress=False, absent="skip")
-
-        result = score(t3former_method(model))
+        methods = {"t3former": t3former_method(model)}
+        if first:  # the baselines once, in the same pass over the windows
+            methods.update(copy_paste=copy_paste_method, warp_const_vel=warp_const_vel_method)
+        records = evaluate_many(methods, self._val, indices, device=device, progress=False, absent="skip")
+        result = records.pop("t3former")
         values = {"score": result["miou"]["avg"], "miou_avg": result["miou"]["avg"], "iou_avg": result["iou"]["avg"],
                   "miou_0s": result["miou"]["0s"], "l2_mean_avg": result["l2_mean"]["avg"]}
-        if first:
-            for name, method in (("copy_paste", copy_paste_method), ("warp_const_vel", warp_const_vel_method)):
-                base = score(method)
-                values.update({f"{name}_miou_avg": base["miou"]["avg"], f"{name}_iou_avg": base["iou"]["avg"]})
+        for name, base in records.items():
+            values.update({f"{name}_miou_avg": base["miou"]["avg"], f"{name}_iou_avg": base["iou"]["avg"]})
         return values
 
     def lr_scales(self) -> dict[str, float]:

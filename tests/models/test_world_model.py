@@ -10,7 +10,7 @@ import torch
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
 from t3fast.models.ego_motion import poses_from_displacements
 from t3fast.models.planner import constant_turn_rate
-from t3fast.models.world_model import T3Former, observed_static, planned_poses
+from t3fast.models.world_model import T3Former, observed_static, planned_poses, present_in_frames
 
 from .test_autoencoder import TINY, random_labels
 
@@ -135,16 +135,17 @@ def test_observed_static_keeps_the_observed_world_and_the_forecast_agents():
     decoded[:, 3, 2, 1] = 4  # a car the forecast put into the wall
     decoded[:, 12, 7, 2] = 16  # a tree that is not an agent's change
     decoded[:, -1, :, 2] = 16  # a tree at the forecast's edge
-    still = observed_static(decoded[:, None], reference[:, None], present, torch.zeros(1, 1, 3))[:, 0]
+    in_place = present_in_frames(present, torch.zeros(1, 1, 3))  # a standing ego
+    still = observed_static(decoded[:, None], reference[:, None], in_place)[:, 0]
     assert (still[:, 3, :, 1:] == 15).all()  # the wall as observed, the car refused there
     assert still[0, 9, 5, 1] == 4 and still[0, 8, 5, 1] == 17  # the car where the forecast put it
     assert still[0, 12, 7, 2] == 17 and (still[0, -1, :, 2] == 17).all()  # only agents' changes edit
-    unchanged = observed_static(reference[:, None], reference[:, None], present, torch.zeros(1, 1, 3))[:, 0]
+    unchanged = observed_static(reference[:, None], reference[:, None], in_place)[:, 0]
     assert torch.equal(unchanged, present)  # no predicted change: the present frame exactly
     # 0.8 m on (2 columns): the last 2 columns are beyond the present grid; what the forecast
     # continues there is kept for the road and dropped (free) for everything else
     moved_on = torch.tensor([[[0.8, 0.0, 0.0]]])
-    on = observed_static(decoded[:, None], reference[:, None], present, moved_on)
+    on = observed_static(decoded[:, None], reference[:, None], present_in_frames(present, moved_on))
     assert (on[0, 0, -2:, :, 0] == 11).all() and (on[0, 0, -2:, :, 2] == 17).all()
     assert (on[0, 0, 1, :, 1:] == 15).all()  # the wall moved back with the ego's motion
 

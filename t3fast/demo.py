@@ -46,7 +46,7 @@ def checkpoint_paths(folder: Path) -> list[Path]:
 def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.device) -> list[Path]:
     """PNG + GIF of the forecasts of ``indices``."""
     from t3fast.data.sample import PRESENT, collate_samples
-    from t3fast.viz import save_forecast_pictures
+    from t3fast.viz.bev import save_forecast_pictures
 
     written = []
     for n, i in enumerate(indices):

@@ -133,7 +133,7 @@ def _label_stats(volumes) -> tuple:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from t3fast.viz import save_sample_png
+    from t3fast.viz.bev import save_sample_png
 
     ds = _dataset(args, 1)
     if not 0 <= args.index < len(ds):

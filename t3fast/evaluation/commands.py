@@ -96,7 +96,7 @@ def _forecast(args: argparse.Namespace) -> int:
     from t3fast.data.occ3d import Occ3DNuScenes
     from t3fast.data.sample import PRESENT, collate_samples
     from t3fast.training.world_model import load_world_model
-    from t3fast.viz import save_forecast_pictures
+    from t3fast.viz.bev import save_forecast_pictures
 
     if not args.data.is_dir():
         raise UsageError(f"--data {args.data} is not a folder")

@@ -3,7 +3,7 @@ from PIL import Image
 
 from t3fast.cli import main
 from t3fast.data import classes as C
-from t3fast.viz import bev_colours, bev_image, render_sample
+from t3fast.viz.bev import bev_colours, bev_image, render_sample
 
 
 def test_bev_takes_the_highest_occupied_voxel():

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from t3fast.cli import main
+from t3fast.io.checkpoint import save_checkpoint
+from t3fast.io.config import config_to_dict
 from t3fast.training.autoencoder import Stage1Config
-from t3fast.training.checkpoint import save_checkpoint
-from t3fast.training.config import config_to_dict
 
 SHIPPED_WM = "t3fast/checkpoints/wm-small.pt"
 

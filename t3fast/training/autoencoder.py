@@ -13,10 +13,10 @@ from torch.utils.data import Dataset
 from t3fast.data.classes import NUM_CLASSES
 from t3fast.data.synthetic import SyntheticFrames
 from t3fast.evaluation.reconstruction import evaluate_reconstruction
+from t3fast.io.checkpoint import load_checkpoint
+from t3fast.io.config import config_to_dict
 from t3fast.models.autoencoder import TriplaneAutoencoder
 from t3fast.models.config import AutoencoderConfig, named_config
-from t3fast.training.checkpoint import load_checkpoint
-from t3fast.training.config import config_to_dict
 from t3fast.training.losses import class_frequency_weights, occupancy_loss
 from t3fast.training.sampling import sample_query_points
 from t3fast.training.trainer import TrainConfig

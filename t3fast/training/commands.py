@@ -47,7 +47,7 @@ def _config(cls, presets, preset, name: str, overrides: list[str]):
     """``cls`` from a preset name or a YAML/JSON file, then the overrides; the run's out_dir is
     checked before anything is built."""
     from t3fast.errors import ConfigError
-    from t3fast.training.config import config_to_dict, load_config
+    from t3fast.io.config import config_to_dict, load_config
     from t3fast.training.run_dir import check_out_dir
 
     if name in presets:
@@ -82,7 +82,7 @@ def _overrides(args: argparse.Namespace) -> list[str]:
 def _fit(task, cfg, parts: tuple[str, ...], name: str) -> int:
     """Train ``task`` with ``cfg.train``; rank 0 saves the resolved config and prints the
     parameter count of each of ``parts`` (submodules of the model) and the final metrics."""
-    from t3fast.training.config import save_config
+    from t3fast.io.config import save_config
     from t3fast.training.distributed import cleanup, is_main
     from t3fast.training.trainer import Trainer
 
@@ -118,10 +118,10 @@ def _train_wm(args: argparse.Namespace) -> int:
 def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticFrames
     from t3fast.evaluation.reconstruction import evaluate_reconstruction
+    from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
+    from t3fast.io.config import load_config
     from t3fast.models.autoencoder import TriplaneAutoencoder
     from t3fast.training.autoencoder import Stage1Config
-    from t3fast.training.checkpoint import AUTOENCODER, read_checkpoint
-    from t3fast.training.config import load_config
     from t3fast.training.distributed import default_device
 
     if args.out is not None and args.out.is_dir():

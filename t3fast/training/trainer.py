@@ -47,8 +47,8 @@ from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
 from t3fast.errors import ConfigError
-from t3fast.training.checkpoint import load_checkpoint, save_checkpoint
-from t3fast.training.config import config_to_dict
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.io.config import config_to_dict
 from t3fast.training.distributed import (
     all_gather_object,
     all_reduce_mean,
@@ -105,7 +105,7 @@ class Task(Protocol):
 
 @dataclass
 class TrainConfig:
-    """Settings of :class:`Trainer` (load with :func:`t3fast.training.config.load_config`)."""
+    """Settings of :class:`Trainer` (load with :func:`t3fast.io.config.load_config`)."""
 
     steps: int = 1000  # optimiser steps in total
     batch_size: int = 8  # per process; the global batch is batch_size * world size

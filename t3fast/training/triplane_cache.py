@@ -16,9 +16,9 @@ import torch
 from tqdm import tqdm
 
 from t3fast.data.synthetic.dataset import SyntheticScenes
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.triplane import Triplane
-from t3fast.training.checkpoint import load_checkpoint, save_checkpoint
 
 
 def encoder_digest(encoder: TriplaneEncoder) -> str:

@@ -33,12 +33,12 @@ from torch.utils.data import Dataset
 from t3fast.data.classes import FREE, IGNORE
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.io.checkpoint import AUTOENCODER, WORLD_MODEL, read_checkpoint
+from t3fast.io.config import config_to_dict, load_config
 from t3fast.models.config import WORLD_MODELS, AutoencoderConfig, WorldModelConfig
 from t3fast.models.ego_motion import planar_poses, warp_sequence
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
-from t3fast.training.checkpoint import AUTOENCODER, WORLD_MODEL, read_checkpoint
-from t3fast.training.config import config_to_dict, load_config
 from t3fast.training.losses import occupancy_loss
 from t3fast.training.sampling import sample_changed_points, sample_query_points
 from t3fast.training.trainer import TrainConfig

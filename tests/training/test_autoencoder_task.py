@@ -8,8 +8,8 @@ import torch
 
 from t3fast.cli import main
 from t3fast.data.classes import DRIVEABLE_SURFACE, FREE, PEDESTRIAN
+from t3fast.io.checkpoint import load_checkpoint
 from t3fast.training.autoencoder import AutoencoderTask, preset
-from t3fast.training.checkpoint import load_checkpoint
 
 TINY_RUN = [
     "data.train_scenes=1",

@@ -9,8 +9,8 @@ from pathlib import Path
 import torch
 import torch.multiprocessing as mp
 
+from t3fast.io.checkpoint import load_checkpoint
 from t3fast.training import distributed as dist_utils
-from t3fast.training.checkpoint import load_checkpoint
 from t3fast.training.trainer import Trainer
 
 from .test_trainer import ToyTask, toy_config

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset, TensorDataset
 
-from t3fast.training.checkpoint import load_checkpoint
+from t3fast.io.checkpoint import load_checkpoint
 from t3fast.training.schedule import warmup_cosine
 from t3fast.training.trainer import ResumableBatchSampler, TrainConfig, Trainer, param_groups
 

@@ -15,8 +15,8 @@ from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
+from t3fast.io.checkpoint import export_weights, load_checkpoint
 from t3fast.models.triplane import Triplane
-from t3fast.training.checkpoint import export_weights, load_checkpoint
 from t3fast.training.world_model import (
     SequenceBatch,
     WorldLossConfig,

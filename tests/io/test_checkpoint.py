@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-import t3fast.training.checkpoint as ckpt
-from t3fast.training.checkpoint import load_checkpoint, save_checkpoint
+import t3fast.io.checkpoint as ckpt
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 
 
 def test_round_trip_leaves_only_the_checkpoint(tmp_path: Path) -> None:

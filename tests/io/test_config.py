@@ -10,7 +10,7 @@ from typing import Literal
 import pytest
 import yaml
 
-from t3fast.training.config import ConfigError, config_to_dict, load_config, save_config
+from t3fast.io.config import ConfigError, config_to_dict, load_config, save_config
 from t3fast.training.trainer import TrainConfig
 
 

@@ -21,6 +21,9 @@ _LAZY = {
     "TriplaneAutoencoder": "t3fast.models",
     "TriplaneDecoder": "t3fast.models",
     "TriplaneEncoder": "t3fast.models",
+    "T3Former": "t3fast.models",
+    "load_world_model": "t3fast.pretrained",
+    "load_autoencoder": "t3fast.pretrained",
 }
 
 

@@ -70,9 +70,9 @@ def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.d
 
 def _demo(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
+    from t3fast.device import default_device
     from t3fast.evaluation.commands import load_models
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
-    from t3fast.training.distributed import default_device
 
     start = time.perf_counter()
     device = default_device()

@@ -10,9 +10,9 @@ import numpy as np
 import torch
 
 from t3fast.cli_args import non_negative_int, positive_int
+from t3fast.device import default_device
 from t3fast.errors import DataFormatError, T3fastError, UsageError
 from t3fast.paths import check_name, inside, output_dir
-from t3fast.training.distributed import default_device
 
 
 def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
@@ -40,13 +40,12 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
 def load_models(paths: list[Path], device: torch.device) -> dict:
     """Stage-2 checkpoints keyed by method name (see :func:`t3fast.evaluation.report.method_name`)."""
     from t3fast.evaluation.report import method_name
-    from t3fast.training.world_model import load_world_model
+    from t3fast.pretrained import load_world_model
 
     models = {}
     for path in paths:
-        model, cfg = load_world_model(path, device)
-        name = method_name(cfg.model.predict_delta, cfg.model.scales, cfg.autoencoder.latent,
-                           cfg.model.ego_aligned)
+        model = load_world_model(path, device)
+        name = method_name(model)
         if name in models:
             raise ValueError(f"{path}: a second {name!r} model; pass one checkpoint per method")
         models[name] = model
@@ -95,7 +94,7 @@ def _forecast(args: argparse.Namespace) -> int:
 
     from t3fast.data.occ3d import Occ3DNuScenes
     from t3fast.data.sample import PRESENT, collate_samples
-    from t3fast.training.world_model import load_world_model
+    from t3fast.pretrained import load_world_model
     from t3fast.viz.bev import save_forecast_pictures
 
     if not args.data.is_dir():
@@ -107,7 +106,7 @@ def _forecast(args: argparse.Namespace) -> int:
     if len(dataset) == 0:
         raise DataFormatError(f"{info}: nothing to forecast: no scene has the 11 frames a window needs")
     device = default_device()
-    model, _ = load_world_model(args.ckpt, device)
+    model = load_world_model(args.ckpt, device)
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):
         sample = dataset[i]
         batch = collate_samples([sample]).to(device)

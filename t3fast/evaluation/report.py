@@ -28,11 +28,12 @@ BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velo
              "warp_gt_ego": warp_gt_ego_method}
 
 
-def method_name(predict_delta: bool, scales: int, latent: str, ego_aligned: bool = True) -> str:
+def method_name(model: T3Former) -> str:
     """``"t3former"`` for the full model, else the ablations it is (``own_frames``: the papers'
-    formulation, ``no_delta``, ``single_scale``, ``bev``)."""
-    parts = [name for name, on in (("own_frames", not ego_aligned), ("no_delta", not predict_delta),
-                                   ("single_scale", scales == 1), ("bev", latent == "bev")) if on]
+    formulation, ``no_delta``, ``single_scale``, ``bev``), read from the sizes it was built from."""
+    world, latent = model.world_config, model.autoencoder_config.latent
+    parts = [name for name, on in (("own_frames", not world.ego_aligned), ("no_delta", not world.predict_delta),
+                                   ("single_scale", world.scales == 1), ("bev", latent == "bev")) if on]
     return "_".join(parts) or "t3former"
 
 

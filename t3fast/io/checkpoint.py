@@ -60,8 +60,9 @@ def checkpoint_kind(state: Any) -> str | None:
     return None
 
 
-def read_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
-    """:func:`load_checkpoint` for a command that needs a checkpoint of ``kind``.
+def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, Any]:
+    """:func:`load_checkpoint` for a command that needs a checkpoint of ``kind`` (or of one of
+    several kinds).
 
     Raises :class:`~t3fast.errors.CheckpointError` saying what the file is when it is missing,
     unreadable, not a t3fast checkpoint, or a checkpoint of the other stage.
@@ -74,14 +75,16 @@ def read_checkpoint(path: str | Path, kind: str) -> dict[str, Any]:
     except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
         reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
+    kinds = (kind,) if isinstance(kind, str) else kind
+    wanted = " or a ".join(kinds)
     found = checkpoint_kind(state)
     if found is None:
         raise CheckpointError(
             f"{path}: not a t3fast checkpoint (no model weights with their config; a plain state_dict "
-            f"cannot be used); this command needs a {kind}"
+            f"cannot be used); this command needs a {wanted}"
         )
-    if found != kind:
-        raise CheckpointError(f"{path}: this is a {found}; this command needs a {kind}")
+    if found not in kinds:
+        raise CheckpointError(f"{path}: this is a {found}; this command needs a {wanted}")
     return state
 
 

@@ -152,6 +152,9 @@ class T3Former(nn.Module):
         self.encoder, self.forecaster, self.planner, self.decoder = encoder, forecaster, planner, decoder
         self.ego_aligned, self.static_from_present = ego_aligned, static_from_present
         self.encoder.requires_grad_(False)
+        # the sizes it was built from (set by from_config): what a checkpoint records
+        self.autoencoder_config: AutoencoderConfig | None = None
+        self.world_config: WorldModelConfig | None = None
 
     @classmethod
     def from_config(cls, autoencoder: AutoencoderConfig, world: WorldModelConfig) -> T3Former:
@@ -179,8 +182,10 @@ class T3Former(nn.Module):
             layers=world.planner_layers,
             bev=bev,
         )
-        return cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder),
-                   ego_aligned=world.ego_aligned, static_from_present=world.static_from_present)
+        model = cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder),
+                    ego_aligned=world.ego_aligned, static_from_present=world.static_from_present)
+        model.autoencoder_config, model.world_config = autoencoder, world
+        return model
 
     def train(self, mode: bool = True) -> T3Former:
         super().train(mode)

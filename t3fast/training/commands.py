@@ -117,12 +117,12 @@ def _train_wm(args: argparse.Namespace) -> int:
 
 def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticFrames
+    from t3fast.device import default_device
     from t3fast.evaluation.reconstruction import evaluate_reconstruction
     from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
     from t3fast.io.config import load_config
     from t3fast.models.autoencoder import TriplaneAutoencoder
     from t3fast.training.autoencoder import Stage1Config
-    from t3fast.training.distributed import default_device
 
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")

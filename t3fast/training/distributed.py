@@ -13,12 +13,9 @@ from typing import Any, TypeVar
 import torch
 import torch.distributed as dist
 
+from t3fast.device import default_device
+
 V = TypeVar("V", float, torch.Tensor, dict)
-
-
-def default_device() -> torch.device:
-    """CUDA when available, else the CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def init_distributed(device: str = "auto") -> torch.device:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
-from pathlib import Path
 
 import torch
 from torch import Tensor, nn
@@ -33,7 +32,7 @@ from torch.utils.data import Dataset
 from t3fast.data.classes import FREE, IGNORE
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import AUTOENCODER, WORLD_MODEL, read_checkpoint
+from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
 from t3fast.io.config import config_to_dict, load_config
 from t3fast.models.config import WORLD_MODELS, AutoencoderConfig, WorldModelConfig
 from t3fast.models.ego_motion import planar_poses, warp_sequence
@@ -379,12 +378,3 @@ class WorldModelTask:
     def config_dict(self) -> dict:
         return config_to_dict(self.cfg)
 
-
-def load_world_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[T3Former, Stage2Config]:
-    """A trained world model from a stage-2 checkpoint (``last.pt``/``best.pt`` or an exported
-    weights file), in eval mode on ``device``."""
-    state = read_checkpoint(path, WORLD_MODEL)
-    cfg = load_config(Stage2Config, state["config"]["task"])
-    model = build_world_model(cfg)
-    model.load_state_dict(state["model"])
-    return model.to(device).eval(), cfg

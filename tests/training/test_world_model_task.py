@@ -17,12 +17,12 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
 from t3fast.io.checkpoint import export_weights, load_checkpoint
 from t3fast.models.triplane import Triplane
+from t3fast.pretrained import load_world_model
 from t3fast.training.world_model import (
     SequenceBatch,
     WorldLossConfig,
     WorldModelTask,
     ego_aligned_window,
-    load_world_model,
     preset,
     rollout_frames,
     rollout_loss,
@@ -79,7 +79,7 @@ def world_ckpt(tmp_path_factory):
     assert main([*args, "train.steps=1"]) == 0
     assert main([*args, "train.steps=2", "--resume"]) == 0  # resumes from step 1
     assert load_checkpoint(out / "last.pt")["step"] == 2
-    assert load_world_model(out / "last.pt")[1].model.ego_aligned
+    assert load_world_model(out / "last.pt").world_config.ego_aligned
     return out / "last.pt"
 
 
@@ -90,7 +90,7 @@ def test_own_frames_preset_encodes_frames_once(world_ckpt, tmp_path):
     for run in ("a", "b"):
         assert main([*args, f"train.out_dir={tmp_path / run}", "train.steps=1"]) == 0
     assert len(list((tmp_path / "cache").glob("triplanes-*.pt"))) == 1
-    assert not load_world_model(tmp_path / "a" / "last.pt")[1].model.ego_aligned
+    assert not load_world_model(tmp_path / "a" / "last.pt").world_config.ego_aligned
 
 
 def test_train_log_has_every_loss_part(world_ckpt):
@@ -122,9 +122,9 @@ def test_exported_weights_give_the_same_forecast(world_ckpt, tmp_path):
     small = tmp_path / "wm.pt"
     size = export_weights(world_ckpt, small)
     assert size < world_ckpt.stat().st_size / 2  # no optimizer state, float16
-    full, _ = load_world_model(world_ckpt)
-    half, cfg = load_world_model(small)
-    assert cfg.model.forecaster_widths == [8, 8, 8]
+    full = load_world_model(world_ckpt)
+    half = load_world_model(small)
+    assert half.world_config.forecaster_widths == [8, 8, 8]
     occ = torch.randint(0, 18, (1, 5, 200, 200, 16), dtype=torch.uint8)
     a, b = full.forecast(occ, torch.zeros(1, 4, 2), steps=2), half.forecast(occ, torch.zeros(1, 4, 2), steps=2)
     assert (a.labels == b.labels).float().mean() > 0.99
@@ -245,8 +245,9 @@ def test_paper_preset_trains(tmp_path):
     assert main(wm) == 0
     events = [json.loads(line) for line in (tmp_path / "wm" / "metrics.jsonl").read_text().splitlines()]
     assert [e["step"] for e in events if e["event"] == "train"] == [1, 2]
-    model, cfg = load_world_model(tmp_path / "wm" / "last.pt")
-    assert cfg.model.ego_aligned and cfg.loss.rollout_steps == 6
+    model = load_world_model(tmp_path / "wm" / "last.pt")
+    assert model.world_config.ego_aligned
+    assert load_checkpoint(tmp_path / "wm" / "last.pt")["config"]["task"]["loss"]["rollout_steps"] == 6
     assert sum(p.numel() for p in model.parameters()) > 30_000_000
 
 
@@ -271,7 +272,7 @@ def test_aligned_window_encodes_only_the_frames_a_rollout_reads():
 def test_rows_of_one_model_share_one_forecast_per_window(world_ckpt, monkeypatch):
     """t3former, _gt_ego and _decoded come from one forecasting pass per window, with the same
     scores as three separate passes."""
-    model, _ = load_world_model(world_ckpt)
+    model = load_world_model(world_ckpt)
     dataset = SyntheticDriving("test", 1, stride=29)  # 2 windows
     options = dict(gt_ego={"gt_ego": True}, decoded={"keep_static": False}, plan={})
     separate = {name: evaluate_forecasts(t3former_method(model, **kw), dataset, progress=False)

@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from t3fast.data.synthetic import SyntheticDriving, SyntheticFrames
-from t3fast.models.config import WORLD_MODELS, named_config
 from t3fast.models.world_model import T3Former
-from t3fast.training.autoencoder import AutoencoderTask, preset
+from t3fast.presets import autoencoder_size, preset, world_model_size
+from t3fast.training.autoencoder import AutoencoderTask
 from t3fast.training.world_model import (
     WorldLossConfig,
     collate_windows,
@@ -26,7 +26,7 @@ from t3fast.training.world_model import (
 @pytest.mark.parametrize("impl", ["fused", "reference"])
 def test_stage1_training_step(benchmark, impl):
     benchmark.group = "stage-1 training step (small, batch 2)"
-    cfg = preset("small")
+    cfg = preset("ae-small")
     cfg.decoder_backend = impl
     task = AutoencoderTask(cfg)
     torch.manual_seed(0)
@@ -52,8 +52,8 @@ def test_stage2_training_step(benchmark, encode):
     reads (the trainer's way) versus all 11 frames of the window."""
     benchmark.group = "stage-2 training step (small, batch 1)"
     torch.manual_seed(0)
-    world = dataclasses.replace(WORLD_MODELS["small"], ego_aligned=True)
-    model = T3Former.from_config(named_config("small"), world).train()
+    world = dataclasses.replace(world_model_size("small"), ego_aligned=True)
+    model = T3Former.from_config(autoencoder_size("small"), world).train()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     batch = collate_windows([SyntheticDriving("val", 1, 20, stride=9)[0]])
     loss_cfg = WorldLossConfig(rollout_steps=1)

@@ -18,15 +18,15 @@ from pathlib import Path
 import torch
 
 from t3fast.cli_args import non_negative_int, positive_int
-
-SHIPPED = Path(__file__).parent / "checkpoints"
-MODELS = ("wm-small", "wm-small-own-frames", "wm-small-no-delta", "wm-small-single-scale", "wm-small-bev")
+from t3fast.errors import UsageError
+from t3fast.presets import shipped_world_models
+from t3fast.pretrained import SHIPPED_DIR
 
 
 def add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser("demo", help="evaluate the shipped world models on held-out synthetic scenes, with pictures")
     demo.add_argument("--out", type=Path, default=Path("demo"), help="output folder")
-    demo.add_argument("--ckpt-dir", type=Path, default=SHIPPED,
+    demo.add_argument("--ckpt-dir", type=Path, default=SHIPPED_DIR,
                       help="folder with wm-small*.pt checkpoints (default: the shipped ones)")
     demo.add_argument("--scenes", type=positive_int, default=10, help="held-out synthetic test scenes")
     demo.add_argument("--stride", type=positive_int, default=8, help="frames between evaluated windows of a scene")
@@ -35,11 +35,12 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
 
 
 def checkpoint_paths(folder: Path) -> list[Path]:
-    """The demo's checkpoints in ``folder``: ``wm-small.pt`` first, then the ablations present."""
-    paths = [folder / f"{name}.pt" for name in MODELS]
-    if not paths[0].exists():
-        raise SystemExit(f"t3fast demo: {paths[0]} not found (train it with `t3fast train-wm --config small`)")
-    return [p for p in paths if p.exists()]
+    """The demo's checkpoints in ``folder`` (the world-model presets found there, see
+    :func:`t3fast.presets.shipped_world_models`): ``wm-small.pt`` first, then the ablations."""
+    paths = shipped_world_models(folder)
+    if not paths or paths[0].name != "wm-small.pt":
+        raise UsageError(f"{folder / 'wm-small.pt'} not found (train it with `t3fast train-wm --config small`)")
+    return paths
 
 
 @torch.no_grad()

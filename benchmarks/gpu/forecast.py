@@ -25,7 +25,6 @@ import statistics
 import sys
 import time
 import traceback
-from copy import deepcopy
 from dataclasses import replace
 from pathlib import Path
 
@@ -37,10 +36,10 @@ MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
 def sizes() -> dict:
     """Named (autoencoder, world model) configs: the presets, and ``tiny`` (``small`` on a
     32 x 32 x 8 grid) for dry runs."""
-    from t3fast.models.config import WORLD_MODELS, named_config
+    from t3fast.presets import WORLD_MODEL_SIZES, autoencoder_size, world_model_size
 
-    out = {name: (named_config(name), deepcopy(WORLD_MODELS[name])) for name in WORLD_MODELS}
-    out["tiny"] = (replace(named_config("small"), grid=(32, 32, 8)), deepcopy(WORLD_MODELS["small"]))
+    out = {name: (autoencoder_size(name), world_model_size(name)) for name in WORLD_MODEL_SIZES}
+    out["tiny"] = (replace(autoencoder_size("small"), grid=(32, 32, 8)), world_model_size("small"))
     return out
 
 

@@ -1,7 +1,7 @@
 """Models of T3Former: the triplane autoencoder (encoder, decoder), the forecaster, the planner."""
 
 from t3fast.models.autoencoder import TriplaneAutoencoder
-from t3fast.models.config import PAPER, SMALL, AutoencoderConfig, named_config
+from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.forecaster import DeltaTriplaneForecaster
@@ -10,8 +10,6 @@ from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import Forecast, T3Former
 
 __all__ = [
-    "PAPER",
-    "SMALL",
     "T3Former",
     "AutoencoderConfig",
     "DeltaTriplaneForecaster",
@@ -21,5 +19,5 @@ __all__ = [
     "TriplaneAutoencoder",
     "TriplaneDecoder",
     "TriplaneEncoder",
-    "named_config",
+    "WorldModelConfig",
 ]

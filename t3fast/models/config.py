@@ -1,9 +1,8 @@
-"""Named sizes of the triplane autoencoder."""
+"""The sizes of the models (the named ones are in :mod:`t3fast.presets`); the defaults are the papers'."""
 
 from __future__ import annotations
 
-import copy
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from t3fast.data.classes import GRID_SHAPE, NUM_CLASSES
 
@@ -43,42 +42,6 @@ class AutoencoderConfig:
         return (x + 1) // 2, (y + 1) // 2, z
 
 
-# The papers' sizes (triplane 8 x (100x100 + 2 x 100x16)): for GPUs.
-PAPER = AutoencoderConfig()
-# Fits training on a 2-core CPU: narrow 3D blocks (most of the cost), decoder C_f = 32,
-# hidden 128 x 2. Same latent as the papers: 8 x (100x100 + 2 x 100x16).
-SMALL = AutoencoderConfig(
-    embed_dim=8,
-    full_res_channels=8,
-    full_res_blocks=0,
-    half_res_channels=16,
-    half_res_blocks=1,
-    channels=8,
-    decoder_channels=32,
-    decoder_hidden=[128, 128],
-)
-
-CONFIGS = {"paper": PAPER, "small": SMALL}
-
-
-def bev_variant(cfg: AutoencoderConfig) -> AutoencoderConfig:
-    """The BEV-only latent with about the triplane's latent size: one X'Y' plane with
-    ceil(C (X'Y' + X'Z' + Y'Z') / X'Y') channels."""
-    x, y, z = cfg.plane_shape
-    size = cfg.channels * (x * y + x * z + y * z)
-    return replace(cfg, latent="bev", channels=-(-size // (x * y)))
-
-
-def named_config(name: str) -> AutoencoderConfig:
-    """``"small"``, ``"paper"``, or either with ``"-bev"`` appended."""
-    base, _, variant = name.partition("-")
-    if base not in CONFIGS or variant not in ("", "bev"):
-        raise ValueError(f"unknown autoencoder config {name!r}; expected one of "
-                         f"{sorted(CONFIGS)} optionally followed by '-bev'")
-    cfg = copy.deepcopy(CONFIGS[base])
-    return bev_variant(cfg) if variant else cfg
-
-
 @dataclass
 class WorldModelConfig:
     """Sizes of the forecaster and the planner (the autoencoder has its own config).
@@ -113,11 +76,3 @@ class WorldModelConfig:
         if not 1 <= self.scales <= len(self.forecaster_widths):
             raise ValueError(f"scales must be in [1, {len(self.forecaster_widths)}], got {self.scales}")
 
-
-WORLD_MODELS = {
-    "paper": WorldModelConfig(),
-    # 2-core CPU budget: narrower scales and ResNet stages, one Transformer layer per stack.
-    "small": WorldModelConfig(
-        forecaster_widths=[16, 24, 32, 48, 64], planner_widths=[8, 16, 32, 64], planner_layers=1
-    ),
-}

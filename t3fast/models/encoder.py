@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 from t3fast.data.classes import FREE, IGNORE
 from t3fast.models.blocks import ResBlock3d, group_norm
-from t3fast.models.config import PAPER, AutoencoderConfig
+from t3fast.models.config import AutoencoderConfig
 from t3fast.models.triplane import Triplane
 from t3fast.ops import axis_pool
 
@@ -37,7 +37,7 @@ class TriplaneEncoder(nn.Module):
     With ``config.latent == "bev"`` only the xy plane is produced (``xz``/``yz`` are None).
 
     Args:
-        config: sizes; the default is the papers' (``t3fast.models.config.PAPER``).
+        config: sizes; the default is the papers' (``AutoencoderConfig()``).
 
     Input ``labels [B, X, Y, Z]`` (integer class ids, 255 = ignore, treated as free);
     output a :class:`Triplane` ``xy [B, C, X', Y']``, ``xz [B, C, X', Z']``, ``yz [B, C, Y', Z']``.
@@ -45,7 +45,7 @@ class TriplaneEncoder(nn.Module):
 
     def __init__(self, config: AutoencoderConfig | None = None):
         super().__init__()
-        cfg = config or PAPER
+        cfg = config or AutoencoderConfig()
         self.config = cfg
         full, half = cfg.full_res_channels, cfg.half_res_channels
         self.embed = nn.Embedding(cfg.num_classes, cfg.embed_dim)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
@@ -16,77 +15,9 @@ from t3fast.evaluation.reconstruction import evaluate_reconstruction
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.models.autoencoder import TriplaneAutoencoder
-from t3fast.models.config import AutoencoderConfig, named_config
+from t3fast.training.configs import FramesConfig, Stage1Config
 from t3fast.training.losses import class_frequency_weights, occupancy_loss
 from t3fast.training.sampling import sample_query_points
-from t3fast.training.trainer import TrainConfig
-
-
-@dataclass
-class FramesConfig:
-    """Where single occupancy frames come from."""
-
-    source: str = "synthetic"  # "synthetic" or "occ3d"
-    train_scenes: int = 200  # synthetic scenes of the train split
-    val_scenes: int = 2  # synthetic scenes scored during training
-    val_stride: int = 4  # every k-th frame of those
-    frames_per_scene: int = 40
-    flip: bool = True  # random x/y flips of training frames
-    occ3d_root: str = ""  # directory holding gts/
-    occ3d_train_info: str = ""  # info pickles
-    occ3d_val_info: str = ""
-
-
-@dataclass
-class LossConfig:
-    """Stage-1 loss: cross-entropy + lovasz_weight * Lovasz-softmax."""
-
-    lovasz_weight: float = 1.0
-    class_weights: bool = False  # inverse-log-frequency CE weights, counted on the first frames
-    class_weight_frames: int = 40  # training frames counted for those weights
-    full_grid: bool = False  # decode every voxel instead of sampled points
-    num_occupied: int = 40_000  # all occupied voxels up to this many per frame
-    num_near_free: int = 20_000  # free voxels next to a surface
-    num_far_free: int = 10_000  # other free voxels
-
-
-@dataclass
-class Stage1Config:
-    """Everything ``t3fast train-ae`` needs."""
-
-    model: AutoencoderConfig = field(default_factory=AutoencoderConfig)
-    data: FramesConfig = field(default_factory=FramesConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-    decoder_backend: str = "fused"  # "reference" for comparisons
-    # a stage-1 or stage-2 checkpoint whose encoder and decoder weights training starts from
-    # (fine-tuning: a new data layout, or synthetic -> Occ3D); "" starts from scratch
-    init_from: str = ""
-
-
-def _preset(model: str, train_scenes: int = 200, **train) -> Stage1Config:
-    cfg = Stage1Config(model=named_config(model), data=FramesConfig(train_scenes=train_scenes))
-    for key, value in train.items():
-        setattr(cfg.train, key, value)
-    return cfg
-
-
-# small: fits this project's 2-core CPU budget; paper: the papers' sizes and batch 10, for GPUs.
-PRESETS = {
-    "small": lambda: _preset("small", train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_steps=100,
-                             log_every=25, eval_every=500, ckpt_every=250, out_dir="runs/ae-small"),
-    "small-bev": lambda: _preset("small-bev", train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_steps=100,
-                                 log_every=25, eval_every=500, ckpt_every=250, out_dir="runs/ae-small-bev"),
-    "paper": lambda: _preset("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
-                             eval_every=2000, ckpt_every=1000, out_dir="runs/ae-paper"),
-}
-
-
-def preset(name: str) -> Stage1Config:
-    """A named stage-1 configuration (see ``PRESETS``)."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown stage-1 config {name!r}; expected one of {sorted(PRESETS)}")
-    return PRESETS[name]()
 
 
 def frames_dataset(data: FramesConfig, split: str) -> Dataset:

@@ -43,28 +43,23 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
                       help="replace the run already in OUT_DIR (without it a non-empty OUT_DIR is refused)")
 
 
-def _config(cls, presets, preset, name: str, overrides: list[str]):
-    """``cls`` from a preset name or a YAML/JSON file, then the overrides; the run's out_dir is
-    checked before anything is built."""
+def _config(cls, stage: str, name: str, overrides: list[str]):
+    """``cls`` from a preset of ``stage`` (:mod:`t3fast.presets`) or a YAML/JSON file, then the
+    overrides; the run's out_dir is checked before anything is built."""
     from t3fast.errors import ConfigError
     from t3fast.io.config import config_to_dict, load_config
+    from t3fast.presets import PRESETS, names, preset
     from t3fast.training.run_dir import check_out_dir
 
-    if name in presets:
-        base = preset(name)
+    if name in names(stage) or (name in PRESETS and name.startswith(stage + "-")):
+        base = preset(name, stage)
     elif Path(name).is_file():
         base = load_config(cls, name)
     else:
-        raise ConfigError(f"--config {name!r} is neither a preset ({', '.join(presets)}) nor a YAML/JSON file")
+        raise ConfigError(f"--config {name!r} is neither a preset ({', '.join(names(stage))}) nor a YAML/JSON file")
     cfg = load_config(cls, config_to_dict(base), overrides)
     check_out_dir(cfg.train.out_dir, cfg.train.resume, cfg.train.resume_from, cfg.train.overwrite)
     return cfg
-
-
-def _stage1_config(name: str, overrides: list[str]):
-    from t3fast.training.autoencoder import PRESETS, Stage1Config, preset
-
-    return _config(Stage1Config, PRESETS, preset, name, overrides)
 
 
 def _overrides(args: argparse.Namespace) -> list[str]:
@@ -102,16 +97,18 @@ def _fit(task, cfg, parts: tuple[str, ...], name: str) -> int:
 
 def _train_ae(args: argparse.Namespace) -> int:
     from t3fast.training.autoencoder import AutoencoderTask
+    from t3fast.training.configs import Stage1Config
 
-    task = AutoencoderTask(_stage1_config(args.config, _overrides(args)))
+    task = AutoencoderTask(_config(Stage1Config, "ae", args.config, _overrides(args)))
     return _fit(task, task.cfg, ("encoder", "decoder"), f"autoencoder {args.config}")
 
 
 def _train_wm(args: argparse.Namespace) -> int:
-    from t3fast.training.world_model import PRESETS, Stage2Config, WorldModelTask, preset
+    from t3fast.training.configs import Stage2Config
+    from t3fast.training.world_model import WorldModelTask
 
     overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
-    task = WorldModelTask(_config(Stage2Config, PRESETS, preset, args.config, overrides))
+    task = WorldModelTask(_config(Stage2Config, "wm", args.config, overrides))
     return _fit(task, task.cfg, ("encoder", "forecaster", "planner", "decoder"), f"world model {args.config}")
 
 

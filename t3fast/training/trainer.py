@@ -35,7 +35,6 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -46,9 +45,9 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
-from t3fast.errors import ConfigError
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.io.config import config_to_dict
+from t3fast.training.configs import TrainConfig
 from t3fast.training.distributed import (
     all_gather_object,
     all_reduce_mean,
@@ -101,40 +100,6 @@ class Task(Protocol):
     def evaluate(self, model: nn.Module) -> dict[str, float]: ...
 
     def samples_in(self, batch: Any) -> int: ...
-
-
-@dataclass
-class TrainConfig:
-    """Settings of :class:`Trainer` (load with :func:`t3fast.io.config.load_config`)."""
-
-    steps: int = 1000  # optimiser steps in total
-    batch_size: int = 8  # per process; the global batch is batch_size * world size
-    lr: float = 1e-3  # peak learning rate
-    min_lr: float = 1e-6  # reached by the cosine at the last step
-    warmup_steps: int = 100  # linear warm-up (capped at steps)
-    weight_decay: float = 0.01  # AdamW; not applied to biases, norm weights, embeddings
-    grad_clip: float | None = 1.0  # max gradient norm; None disables clipping
-    amp: bool = True  # CUDA only: bf16 autocast when supported, else fp16 with a GradScaler
-    seed: int = 0
-    log_every: int = 50  # steps between train log events
-    eval_every: int = 1000  # steps between evaluations (also at the end); 0 never evaluates
-    eval_at_start: bool = False  # also score the untrained model (step 0): the run's own baseline
-    ckpt_every: int = 1000  # steps between last.pt writes (also at the end); 0: only at the end
-    num_workers: int = 0  # DataLoader worker processes
-    out_dir: str = "runs/train"
-    tensorboard: bool = True  # used only if torch.utils.tensorboard imports
-    resume: bool = False  # continue from out_dir/last.pt (must exist)
-    resume_from: str | None = None  # continue from this checkpoint (must exist)
-    overwrite: bool = False  # replace the run already in out_dir (a new run needs an empty out_dir)
-    device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu"
-
-    def __post_init__(self) -> None:
-        """Reject counts that would crash or silently do nothing later (e.g. a zero batch)."""
-        at_least = {"steps": 1, "batch_size": 1, "warmup_steps": 0, "log_every": 0, "eval_every": 0,
-                    "ckpt_every": 0, "num_workers": 0}
-        for key, low in at_least.items():
-            if getattr(self, key) < low:
-                raise ConfigError(f"train.{key} must be at least {low}, got {getattr(self, key)}")
 
 
 class ResumableBatchSampler(Sampler[list[int]]):

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor, nn
@@ -34,105 +34,14 @@ from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
 from t3fast.io.config import config_to_dict, load_config
-from t3fast.models.config import WORLD_MODELS, AutoencoderConfig, WorldModelConfig
+from t3fast.models.config import AutoencoderConfig
 from t3fast.models.ego_motion import planar_poses, warp_sequence
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
+from t3fast.training.configs import Stage2Config, WorldLossConfig
 from t3fast.training.losses import occupancy_loss
 from t3fast.training.sampling import sample_changed_points, sample_query_points
-from t3fast.training.trainer import TrainConfig
 from t3fast.training.triplane_cache import cached_scene_triplanes
-
-
-@dataclass
-class SequencesConfig:
-    """Where the 11-frame windows come from."""
-
-    source: str = "synthetic"  # "synthetic" or "occ3d"
-    train_scenes: int = 200
-    val_scenes: int = 4  # scored during training (absent classes left out of mIoU)
-    val_windows: int = 16  # at most this many windows of those scored
-    val_stride: int = 8  # frames between the starts of scored windows
-    frames_per_scene: int = 40
-    stride: int = 1  # frames between consecutive training windows
-    cache_dir: str = "runs/cache"  # encoded triplanes of the synthetic training scenes
-    occ3d_root: str = ""
-    occ3d_train_info: str = ""
-    occ3d_val_info: str = ""
-
-
-@dataclass
-class WorldLossConfig:
-    """Stage-2 loss weights and the rollout trained per step."""
-
-    gamma: float = 1.0  # weight of the L2 triplane term next to L1
-    xi: float = 0.1  # weight of the occupancy loss on decoded predictions
-    action_weight: float = 1.0
-    lovasz_weight: float = 1.0
-    rollout_steps: int = 6  # autoregressive steps per sample (1..6), from a random start
-    pushforward: bool = True  # a rollout from step k > 0 starts from the model's own k predictions
-    num_occupied: int = 10_000  # query points per predicted frame
-    num_near_free: int = 5_000
-    num_far_free: int = 2_000
-    num_changed: int = 0  # more query points where the target differs from the present frame (what moved)
-
-
-@dataclass
-class Stage2Config:
-    """Everything ``t3fast train-wm`` needs. ``autoencoder`` is filled from the stage-1
-    checkpoint, so a stage-2 checkpoint describes its whole model."""
-
-    autoencoder_ckpt: str = "runs/ae-small/best.pt"
-    autoencoder: AutoencoderConfig | None = None
-    decoder_lr_scale: float = 0.1  # the pretrained decoder is fine-tuned at this fraction of train.lr; 0 freezes it
-    planner_lr_scale: float = 1.0  # the planner's fraction of train.lr; 0 freezes it
-    model: WorldModelConfig = field(default_factory=WorldModelConfig)
-    data: SequencesConfig = field(default_factory=SequencesConfig)
-    loss: WorldLossConfig = field(default_factory=WorldLossConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
-
-
-def _small(out: str, ae: str = "small", ego_aligned: bool = True, **model) -> Stage2Config:
-    return Stage2Config(
-        autoencoder_ckpt=f"runs/ae-{ae}/best.pt",
-        model=replace(copy.deepcopy(WORLD_MODELS["small"]), ego_aligned=ego_aligned, **model),
-        # the decoder stays as pretrained: CPU-budget forecasts are still too coarse to fine-tune it
-        # on (it learns to blur them, and its reconstruction falls)
-        decoder_lr_scale=0.0,
-        # the planner stays at constant speed and turn rate: trained for 150 steps its correction
-        # lowered validation mean-L2 from 0.945 to 0.895 m, but the forecasts rendered from its
-        # poses fell from 27.15 to 25.86 Avg mIoU (26.39 with its along-track part only)
-        planner_lr_scale=0.0,
-        data=SequencesConfig(train_scenes=30, stride=2),
-        loss=WorldLossConfig(rollout_steps=1, num_changed=5_000),
-        train=TrainConfig(steps=200, batch_size=1, lr=3e-4, warmup_steps=20, log_every=25, eval_every=200,
-                          eval_at_start=True, ckpt_every=100, out_dir=f"runs/{out}"),
-    )
-
-
-# small*: the 2-core CPU budget (same steps, data and sizes for the ablations); small-own-frames
-# is the papers' formulation (every frame in its own ego frame); paper: the papers' sizes, full
-# 6-step rollouts, for GPUs.
-PRESETS = {
-    "small": lambda: _small("wm-small"),
-    "small-own-frames": lambda: _small("wm-small-own-frames", ego_aligned=False),
-    "small-no-delta": lambda: _small("wm-small-no-delta", predict_delta=False),
-    "small-single-scale": lambda: _small("wm-small-single-scale", scales=1),
-    "small-bev": lambda: _small("wm-small-bev", ae="small-bev"),
-    "paper": lambda: Stage2Config(
-        autoencoder_ckpt="runs/ae-paper/best.pt",
-        model=replace(copy.deepcopy(WORLD_MODELS["paper"]), ego_aligned=True),
-        train=TrainConfig(steps=20_000, batch_size=4, lr=5e-4, warmup_steps=1000, log_every=100, eval_every=2000,
-                          eval_at_start=True, ckpt_every=1000, out_dir="runs/wm-paper"),
-    ),
-}
-
-
-def preset(name: str) -> Stage2Config:
-    """A named stage-2 configuration (see ``PRESETS``)."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown stage-2 config {name!r}; expected one of {sorted(PRESETS)}")
-    return PRESETS[name]()
 
 
 @dataclass

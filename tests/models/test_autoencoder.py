@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from t3fast import TriplaneDecoder, TriplaneEncoder
-from t3fast.models import AutoencoderConfig, Triplane, TriplaneAutoencoder, named_config
+from t3fast.models import AutoencoderConfig, Triplane, TriplaneAutoencoder
+from t3fast.presets import autoencoder_size
 
 TINY = AutoencoderConfig(
     grid=(12, 10, 4),
@@ -41,7 +42,7 @@ def test_defaults_build_the_paper_model_for_occ3d():
 
 @pytest.mark.parametrize("name", ["small", "small-bev"])
 def test_named_configs_shapes(name):
-    cfg = dataclasses.replace(named_config(name), grid=(20, 16, 4))
+    cfg = dataclasses.replace(autoencoder_size(name), grid=(20, 16, 4))
     model = TriplaneAutoencoder(cfg)
     labels = random_labels(2, cfg.grid)
     triplane = model.encode(labels)
@@ -56,7 +57,7 @@ def test_named_configs_shapes(name):
 
 
 def test_bev_latent_matches_triplane_size():
-    tri, bev = named_config("small"), named_config("small-bev")
+    tri, bev = autoencoder_size("small"), autoencoder_size("small-bev")
     x, y, z = tri.plane_shape
     tri_size = tri.channels * (x * y + x * z + y * z)
     assert bev.latent == "bev" and abs(bev.channels * x * y - tri_size) / tri_size < 0.05

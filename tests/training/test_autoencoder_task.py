@@ -9,7 +9,8 @@ import torch
 from t3fast.cli import main
 from t3fast.data.classes import DRIVEABLE_SURFACE, FREE, PEDESTRIAN
 from t3fast.io.checkpoint import load_checkpoint
-from t3fast.training.autoencoder import AutoencoderTask, preset
+from t3fast.presets import preset
+from t3fast.training.autoencoder import AutoencoderTask
 
 TINY_RUN = [
     "data.train_scenes=1",
@@ -48,7 +49,7 @@ def test_train_resume_and_evaluate(tmp_path, capsys):
 
 
 def test_class_weights_favour_rare_classes():
-    cfg = preset("small")
+    cfg = preset("ae-small")
     cfg.data.train_scenes, cfg.data.frames_per_scene = 1, 11
     cfg.loss.class_weights, cfg.loss.class_weight_frames = True, 2
     weights = AutoencoderTask(cfg)._weights(torch.device("cpu"))

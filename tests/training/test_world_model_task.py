@@ -17,13 +17,13 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
 from t3fast.io.checkpoint import export_weights, load_checkpoint
 from t3fast.models.triplane import Triplane
+from t3fast.presets import preset
 from t3fast.pretrained import load_world_model
 from t3fast.training.world_model import (
     SequenceBatch,
     WorldLossConfig,
     WorldModelTask,
     ego_aligned_window,
-    preset,
     rollout_frames,
     rollout_loss,
 )
@@ -167,7 +167,7 @@ def test_stage2_rejects_a_missing_autoencoder(tmp_path, capsys):
 
 
 def test_rollout_steps_out_of_range(world_ckpt):
-    cfg = preset("small")
+    cfg = preset("wm-small")
     cfg.autoencoder_ckpt, cfg.loss.rollout_steps = str(world_ckpt.parent.parent / "ae" / "last.pt"), 7
     planes = Triplane(torch.zeros(1, 11, 8, 8, 6), torch.zeros(1, 11, 8, 8, 2), torch.zeros(1, 11, 8, 6, 2))
     batch = SequenceBatch(torch.zeros(1, 11, 16, 12, 4, dtype=torch.uint8), planes, torch.zeros(1, 4, 2),

@@ -24,29 +24,22 @@ augmentations in ``training_step`` or derive them from the sample index to keep 
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import json
 import logging
 import math
-import random
-import signal
-import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
-from torch.utils.data import DataLoader, Dataset, Sampler
-from tqdm import tqdm
+from torch.utils.data import DataLoader
 
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.io.config import config_to_dict
+from t3fast.training.batch_sampler import ResumableBatchSampler
 from t3fast.training.configs import TrainConfig
 from t3fast.training.distributed import (
     all_gather_object,
@@ -58,84 +51,15 @@ from t3fast.training.distributed import (
     rank,
     world_size,
 )
+from t3fast.training.interrupt import StopRequest, ignore_sigint
+from t3fast.training.metrics_log import MetricsLog
+from t3fast.training.param_groups import param_groups
+from t3fast.training.random_state import derive_seed, preserved_rng, rng_state, seed_everything, set_rng_state
 from t3fast.training.run_dir import check_out_dir, clear_run
 from t3fast.training.schedule import warmup_cosine
+from t3fast.training.task import Task
 
 log = logging.getLogger(__name__)
-
-
-@runtime_checkable
-class Task(Protocol):
-    """What a training job supplies to :class:`Trainer`.
-
-    Methods:
-        build_model: the trainable module. The trainer moves it to the device and, when
-            distributed, wraps it in DistributedDataParallel.
-        train_dataset: a map-style dataset (with ``len``).
-        collate: turns a list of dataset items into a batch. The trainer moves the batch's
-            tensors (in dicts, lists, tuples, or objects with a ``.to(device)``) to the device.
-        training_step: ``(model, batch) -> (loss, values)``: the scalar loss to back-propagate
-            and floats to log (the same keys on every rank). ``model`` may be the DDP wrapper:
-            compute the loss through ``model(...)`` so gradients are synchronised. Runs under
-            autocast when AMP is on.
-        evaluate: ``model -> metrics``; must contain ``"score"`` (higher is better; decides
-            ``best.pt``). Called on every rank with the plain module in eval mode under
-            ``torch.no_grad()``; the task may all-reduce. Logged by rank 0. Random numbers drawn
-            here do not disturb the training streams.
-        samples_in: number of samples in a batch, for throughput.
-
-    Optional: ``config_dict() -> dict`` of plain values (numbers, strings, lists, dicts), stored in
-    checkpoints under ``state["config"]["task"]``; ``lr_scales() -> {submodule name: factor}``,
-    learning-rate multipliers of parts of the model (e.g. a decoder being fine-tuned).
-    """
-
-    def build_model(self) -> nn.Module: ...
-
-    def train_dataset(self) -> Dataset: ...
-
-    def collate(self, batch_list: list[Any]) -> Any: ...
-
-    def training_step(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]: ...
-
-    def evaluate(self, model: nn.Module) -> dict[str, float]: ...
-
-    def samples_in(self, batch: Any) -> int: ...
-
-
-class ResumableBatchSampler(Sampler[list[int]]):
-    """Deterministic, sharded, resumable batches of dataset indices.
-
-    Epoch ``e`` draws one permutation from a generator seeded by ``(seed, e)``. Global batch
-    ``b`` is ``perm[b*G:(b+1)*G]`` with ``G = batch_size * world_size``; rank ``r`` takes its
-    ``r``-th slice of ``batch_size``. The incomplete tail is dropped so every rank takes the
-    same number of steps. ``set_epoch(e, skip)`` starts the epoch at batch ``skip``.
-    """
-
-    def __init__(self, dataset_size: int, batch_size: int, seed: int, rank: int = 0, world_size: int = 1) -> None:
-        self.dataset_size, self.batch_size, self.seed = dataset_size, batch_size, seed
-        self.rank, self.world_size = rank, world_size
-        self.batches_per_epoch = dataset_size // (batch_size * world_size)
-        if self.batches_per_epoch == 0:
-            raise ValueError(
-                f"dataset of {dataset_size} samples is smaller than one global batch "
-                f"({batch_size} per process x {world_size} processes)"
-            )
-        self.epoch, self.skip = 0, 0
-
-    def set_epoch(self, epoch: int, skip: int = 0) -> None:
-        """Choose the epoch to iterate and how many of its batches were already consumed."""
-        self.epoch, self.skip = epoch, skip
-
-    def __len__(self) -> int:
-        return self.batches_per_epoch - self.skip
-
-    def __iter__(self) -> Iterator[list[int]]:
-        gen = torch.Generator().manual_seed(_derive_seed(self.seed, self.epoch))
-        perm = torch.randperm(self.dataset_size, generator=gen).tolist()
-        global_batch = self.batch_size * self.world_size
-        for b in range(self.skip, self.batches_per_epoch):
-            start = b * global_batch + self.rank * self.batch_size
-            yield perm[start : start + self.batch_size]
 
 
 class Trainer:
@@ -159,7 +83,7 @@ class Trainer:
                 clear_run(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
 
-        _seed_everything(cfg.seed)  # the same initial weights on every rank
+        seed_everything(cfg.seed)  # the same initial weights on every rank
         self.module = task.build_model().to(self.device)
         self.model: nn.Module = self.module
         if self.world > 1:
@@ -183,19 +107,17 @@ class Trainer:
             num_workers=cfg.num_workers,
             pin_memory=self.device.type == "cuda",
             generator=self._loader_gen,
-            worker_init_fn=_ignore_sigint,
+            worker_init_fn=ignore_sigint,
         )
-        _seed_everything(_derive_seed(cfg.seed, self.rank))  # per-rank dropout/augmentation streams
+        seed_everything(derive_seed(cfg.seed, self.rank))  # per-rank dropout/augmentation streams
 
         self.step = 0
         self.best_score = -math.inf
         self.interrupted = False
-        self._stop_requested = False
+        self._stop = StopRequest(announce=is_main())
         self._last_eval_step = self._last_ckpt_step = -1
-        self._last: dict[str, dict[str, float]] = {}
         self._reset_window()
-        self._writer: Any = None
-        self._bar: tqdm | None = None
+        self._log = MetricsLog(self.out_dir, is_main(), cfg.tensorboard)
         self._maybe_resume()
 
     # ---- the loop -------------------------------------------------------------------------
@@ -207,18 +129,18 @@ class Trainer:
         the last evaluation as ``eval/<name>``. Ctrl-C stops after the current step, writes
         ``last.pt`` and returns (``self.interrupted`` is then True); a second Ctrl-C aborts.
         """
-        self._open_outputs()
+        self._log.open(self.cfg.steps, self.step)
         self._reset_window()
         batches = self._batches()
         try:
-            with self._sigint_guard():
+            with self._stop.installed():
                 if self.cfg.eval_at_start and self.cfg.eval_every and self.step == 0:
                     self._evaluate()  # best.pt starts as the untrained model: training must beat it
                 self.model.train()
                 while self.step < self.cfg.steps:
                     self._train_step(next(batches))
                     self._periodic()
-                    if any_rank(self._stop_requested):  # all ranks stop at the same step
+                    if any_rank(self._stop.requested):  # all ranks stop at the same step
                         self.interrupted = True
                         self._save("last.pt")
                         break
@@ -226,7 +148,7 @@ class Trainer:
                     self._finish()
         finally:
             batches.close()
-            self._close_outputs()
+            self._log.close()
         return self._result()
 
     def _train_step(self, batch: Any) -> None:
@@ -249,8 +171,7 @@ class Trainer:
             self._sums[k] += v
         self._count += 1
         self._samples += self.task.samples_in(batch)
-        if self._bar is not None:
-            self._bar.update(1)
+        self._log.advance()
 
     def _periodic(self) -> None:
         cfg, step = self.cfg, self.step
@@ -275,7 +196,7 @@ class Trainer:
         epoch, skip = divmod(self.step, self.sampler.batches_per_epoch)
         while True:
             self.sampler.set_epoch(epoch, skip)
-            self._loader_gen.manual_seed(_derive_seed(self.cfg.seed, self.rank, epoch))
+            self._loader_gen.manual_seed(derive_seed(self.cfg.seed, self.rank, epoch))
             yield from self.loader
             epoch, skip = epoch + 1, 0
 
@@ -283,13 +204,13 @@ class Trainer:
 
     def _evaluate(self) -> None:
         self.model.eval()
-        with _preserved_rng(self.device), torch.no_grad():
+        with preserved_rng(self.device), torch.no_grad():
             values = {k: float(v) for k, v in self.task.evaluate(self.module).items()}
         self.model.train()
         if "score" not in values:
             raise KeyError(f"Task.evaluate must return a 'score' (higher is better); got {sorted(values)}")
         self._last_eval_step = self.step
-        self._emit("eval", values)
+        self._log.emit("eval", self.step, values)
         score = all_reduce_mean(values["score"])  # every rank must agree on saving (it is collective)
         if score > self.best_score:
             self.best_score = score
@@ -301,7 +222,7 @@ class Trainer:
         means["samples"] = float(self._samples)
         means = all_reduce_mean(means)
         means["samples_per_s"] = means.pop("samples") * self.world / max(elapsed, 1e-9)
-        self._emit("train", means)
+        self._log.emit("train", self.step, means)
         self._reset_window()
 
     def _reset_window(self) -> None:
@@ -310,51 +231,17 @@ class Trainer:
         self._samples = 0
         self._t0 = time.perf_counter()
 
-    def _emit(self, event: str, values: dict[str, float]) -> None:
-        """Record a log or evaluation event: metrics.jsonl, TensorBoard, progress bar (rank 0)."""
-        self._last[event] = values
-        if not is_main():
-            return
-        record = {"event": event, "step": self.step, "time": time.time(), "values": values}
-        with open(self.out_dir / "metrics.jsonl", "a") as f:
-            f.write(json.dumps(record) + "\n")
-        if self._writer is not None:
-            for k, v in values.items():
-                self._writer.add_scalar(f"{event}/{k}", v, self.step)
-        if self._bar is None:
-            return
-        if event == "train":
-            loss, lr, rate = values["loss"], values["lr"], values["samples_per_s"]
-            self._bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.3g}", samples_s=f"{rate:.1f}")
-        else:
-            self._bar.write(f"step {self.step} {event}: " + ", ".join(f"{k}={v:.4g}" for k, v in values.items()))
-
-    def _open_outputs(self) -> None:
-        if not is_main():
-            return
-        self._bar = tqdm(total=self.cfg.steps, initial=self.step, desc="train", dynamic_ncols=True)
-        if self.cfg.tensorboard:
-            self._writer = _tensorboard_writer(self.out_dir / "tb")
-
-    def _close_outputs(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-
     def _result(self) -> dict[str, float]:
         out = {"step": float(self.step), "best_score": self.best_score}
         for event in ("train", "eval"):
-            out.update({f"{event}/{k}": v for k, v in self._last.get(event, {}).items()})
+            out.update({f"{event}/{k}": v for k, v in self._log.last.get(event, {}).items()})
         return out
 
     # ---- checkpoints ----------------------------------------------------------------------
 
     def _save(self, name: str) -> None:
         """Write ``out_dir/name``; collective (every rank contributes its random state)."""
-        rng = all_gather_object(_rng_state(self.device))
+        rng = all_gather_object(rng_state(self.device))
         if is_main():
             save_checkpoint(self._state(rng), self.out_dir / name)
         if name == "last.pt":
@@ -390,12 +277,12 @@ class Trainer:
         self.best_score = float(state["best_score"])
         rng = state["rng"]
         if len(rng) == self.world:
-            _set_rng_state(rng[self.rank], self.device)
+            set_rng_state(rng[self.rank], self.device)
         else:
             log.warning("checkpoint has random states of %d ranks, this run has %d: reseeding", len(rng), self.world)
-            _seed_everything(_derive_seed(self.cfg.seed, self.rank, self.step))
+            seed_everything(derive_seed(self.cfg.seed, self.rank, self.step))
         if is_main():
-            _drop_metrics_after(self.out_dir / "metrics.jsonl", self.step)
+            self._log.drop_after(self.step)
             log.info("resumed from %s at step %d", path, self.step)
 
     def _resume_path(self) -> Path | None:
@@ -407,56 +294,6 @@ class Trainer:
         # check_out_dir has made sure out_dir/last.pt exists when resuming
         return self.out_dir / "last.pt" if self.cfg.resume else None
 
-    # ---- Ctrl-C ---------------------------------------------------------------------------
-
-    @contextlib.contextmanager
-    def _sigint_guard(self) -> Iterator[None]:
-        """First Ctrl-C: finish the step, save, return. Second: KeyboardInterrupt at once."""
-        if threading.current_thread() is not threading.main_thread():  # signal handlers live there only
-            yield
-            return
-
-        def handler(signum: int, frame: Any) -> None:
-            if self._stop_requested:
-                raise KeyboardInterrupt
-            self._stop_requested = True
-            if is_main():
-                tqdm.write("interrupted: saving last.pt after this step (Ctrl-C again to abort)")
-
-        previous = signal.signal(signal.SIGINT, handler)
-        try:
-            yield
-        finally:
-            # None means a handler not installed from Python; the default is the closest we can restore
-            signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
-
-
-def param_groups(
-    model: nn.Module, weight_decay: float, lr: float | None = None, lr_scales: Mapping[str, float] | None = None
-) -> list[dict[str, Any]]:
-    """AdamW groups: decay on weight matrices/kernels; none on biases, norm weights (every 1-D
-    parameter) and embedding tables. Frozen parameters are left out.
-
-    ``lr_scales`` maps submodule names (``"decoder"``) to learning-rate multipliers; their
-    parameters get groups of their own with ``lr = lr * scale``. Groups at the full rate come
-    first (decay, then no decay)."""
-    scales = dict(lr_scales or {})
-    groups: dict[tuple[float, bool], list[nn.Parameter]] = {}
-    seen: set[int] = set()
-    for name, module in model.named_modules():
-        scale = next((s for prefix, s in scales.items() if name == prefix or name.startswith(prefix + ".")), 1.0)
-        for p in module.parameters(recurse=False):
-            if not p.requires_grad or id(p) in seen:  # shared parameters appear once
-                continue
-            seen.add(id(p))
-            exempt = p.ndim < 2 or isinstance(module, nn.Embedding | nn.EmbeddingBag)
-            groups.setdefault((scale, exempt), []).append(p)
-    ordered = sorted(groups, key=lambda key: (key[0] != 1.0, -key[0], key[1]))
-    return [
-        {"params": groups[key], "weight_decay": 0.0 if key[1] else weight_decay}
-        | ({} if lr is None else {"lr": lr * key[0]})
-        for key in ordered
-    ]
 
 
 def _amp_dtype(enabled: bool, device: torch.device) -> torch.dtype | None:
@@ -478,70 +315,3 @@ def _to_device(obj: Any, device: torch.device) -> Any:
     if callable(getattr(obj, "to", None)):
         return obj.to(device)
     return obj
-
-
-def _derive_seed(*parts: int) -> int:
-    """A 63-bit seed from several integers, with no collisions between e.g. (1, 0) and (0, 1)."""
-    digest = hashlib.blake2b(repr(parts).encode(), digest_size=8).digest()
-    return int.from_bytes(digest, "little") >> 1
-
-
-def _seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)  # also seeds every CUDA device
-
-
-def _rng_state(device: torch.device) -> dict[str, Any]:
-    """The random streams of this process, as plain values (loadable with ``weights_only=True``)."""
-    kind, key, pos, has_gauss, gauss = np.random.get_state()
-    state: dict[str, Any] = {
-        "python": random.getstate(),
-        "numpy": [kind, torch.from_numpy(key.astype(np.int64)), int(pos), int(has_gauss), float(gauss)],
-        "torch": torch.get_rng_state(),
-    }
-    if device.type == "cuda":
-        state["cuda"] = torch.cuda.get_rng_state(device)
-    return state
-
-
-def _set_rng_state(state: dict[str, Any], device: torch.device) -> None:
-    random.setstate(state["python"])
-    kind, key, pos, has_gauss, gauss = state["numpy"]
-    np.random.set_state((kind, key.numpy().astype(np.uint32), pos, has_gauss, gauss))
-    torch.set_rng_state(state["torch"])
-    if device.type == "cuda" and "cuda" in state:
-        torch.cuda.set_rng_state(state["cuda"], device)
-
-
-@contextlib.contextmanager
-def _preserved_rng(device: torch.device) -> Iterator[None]:
-    """Run a block without moving the random streams (evaluation must not change training)."""
-    state = _rng_state(device)
-    try:
-        yield
-    finally:
-        _set_rng_state(state, device)
-
-
-def _drop_metrics_after(path: Path, step: int) -> None:
-    """On resume, forget the events the interrupted run logged after its checkpoint."""
-    if not path.is_file():
-        return
-    lines = path.read_text().splitlines(keepends=True)
-    kept = [line for line in lines if line.strip() and json.loads(line)["step"] <= step]
-    if len(kept) != len(lines):
-        path.write_text("".join(kept))
-
-
-def _ignore_sigint(worker_id: int) -> None:
-    """DataLoader workers leave Ctrl-C to the main process, which stops cleanly and shuts them down."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _tensorboard_writer(log_dir: Path) -> Any:
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except ImportError:  # tensorboard is optional
-        return None
-    return SummaryWriter(str(log_dir))

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from t3fast.io.config import ConfigError, config_to_dict, load_config, save_config
-from t3fast.training.trainer import TrainConfig
+from t3fast.training.configs import TrainConfig
 
 
 @dataclass

@@ -18,8 +18,11 @@ from torch import nn
 from torch.utils.data import Dataset, TensorDataset
 
 from t3fast.io.checkpoint import load_checkpoint
+from t3fast.training.batch_sampler import ResumableBatchSampler
+from t3fast.training.configs import TrainConfig
+from t3fast.training.param_groups import param_groups
 from t3fast.training.schedule import warmup_cosine
-from t3fast.training.trainer import ResumableBatchSampler, TrainConfig, Trainer, param_groups
+from t3fast.training.trainer import Trainer
 
 
 class ToyTask:

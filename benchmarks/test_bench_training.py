@@ -13,14 +13,10 @@ import torch
 from t3fast.data.synthetic import SyntheticDriving, SyntheticFrames
 from t3fast.models.world_model import T3Former
 from t3fast.presets import autoencoder_size, preset, world_model_size
-from t3fast.training.autoencoder import AutoencoderTask
-from t3fast.training.world_model import (
-    WorldLossConfig,
-    collate_windows,
-    ego_aligned_window,
-    rollout_frames,
-    rollout_loss,
-)
+from t3fast.training.autoencoder.task import AutoencoderTask
+from t3fast.training.configs import WorldLossConfig
+from t3fast.training.world_model.loss import rollout_loss
+from t3fast.training.world_model.windows import collate_windows, ego_aligned_window, rollout_frames
 
 
 @pytest.mark.parametrize("impl", ["fused", "reference"])

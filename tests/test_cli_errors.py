@@ -9,7 +9,7 @@ import torch
 from t3fast.cli import main
 from t3fast.io.checkpoint import save_checkpoint
 from t3fast.io.config import config_to_dict
-from t3fast.training.autoencoder import Stage1Config
+from t3fast.training.configs import Stage1Config
 
 SHIPPED_WM = "t3fast/checkpoints/wm-small.pt"
 

@@ -96,7 +96,7 @@ def _fit(task, cfg, parts: tuple[str, ...], name: str) -> int:
 
 
 def _train_ae(args: argparse.Namespace) -> int:
-    from t3fast.training.autoencoder import AutoencoderTask
+    from t3fast.training.autoencoder.task import AutoencoderTask
     from t3fast.training.configs import Stage1Config
 
     task = AutoencoderTask(_config(Stage1Config, "ae", args.config, _overrides(args)))
@@ -105,7 +105,7 @@ def _train_ae(args: argparse.Namespace) -> int:
 
 def _train_wm(args: argparse.Namespace) -> int:
     from t3fast.training.configs import Stage2Config
-    from t3fast.training.world_model import WorldModelTask
+    from t3fast.training.world_model.task import WorldModelTask
 
     overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
     task = WorldModelTask(_config(Stage2Config, "wm", args.config, overrides))
@@ -119,7 +119,7 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
     from t3fast.io.config import load_config
     from t3fast.models.autoencoder import TriplaneAutoencoder
-    from t3fast.training.autoencoder import Stage1Config
+    from t3fast.training.configs import Stage1Config
 
     if args.out is not None and args.out.is_dir():
         raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")

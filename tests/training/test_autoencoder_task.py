@@ -10,7 +10,7 @@ from t3fast.cli import main
 from t3fast.data.classes import DRIVEABLE_SURFACE, FREE, PEDESTRIAN
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.presets import preset
-from t3fast.training.autoencoder import AutoencoderTask
+from t3fast.training.autoencoder.task import AutoencoderTask
 
 TINY_RUN = [
     "data.train_scenes=1",

@@ -19,14 +19,10 @@ from t3fast.io.checkpoint import export_weights, load_checkpoint
 from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
 from t3fast.pretrained import load_world_model
-from t3fast.training.world_model import (
-    SequenceBatch,
-    WorldLossConfig,
-    WorldModelTask,
-    ego_aligned_window,
-    rollout_frames,
-    rollout_loss,
-)
+from t3fast.training.configs import WorldLossConfig
+from t3fast.training.world_model.loss import rollout_loss
+from t3fast.training.world_model.task import WorldModelTask
+from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window, rollout_frames
 
 from ..models.test_world_model import tiny_world_model
 

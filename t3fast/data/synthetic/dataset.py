@@ -154,11 +154,16 @@ class SyntheticDriving(Dataset):
     def __len__(self) -> int:
         return len(self.scenes) * len(self.starts)
 
-    def __getitem__(self, index: int) -> DrivingSample:
+    def locate(self, index: int) -> tuple[int, int]:
+        """(scene index, first frame) of window ``index``."""
         if not 0 <= index < len(self):
             raise IndexError(index)
         scene, k = divmod(index, len(self.starts))
-        sample = self.scenes.packed(scene).window(self.starts[k])
+        return scene, self.starts[k]
+
+    def __getitem__(self, index: int) -> DrivingSample:
+        scene, start = self.locate(index)
+        sample = self.scenes.packed(scene).window(start)
         return random_flip(sample) if self.flip else sample
 
 

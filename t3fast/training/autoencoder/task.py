@@ -1,4 +1,5 @@
-"""Stage 1: pretraining the triplane autoencoder (a :class:`~t3fast.training.trainer.Task`)."""
+"""The stage-1 :class:`~t3fast.training.task.Task`: trains the triplane autoencoder on single
+frames and scores its reconstruction."""
 
 from __future__ import annotations
 
@@ -10,27 +11,14 @@ from torch import Tensor, nn
 from torch.utils.data import Dataset
 
 from t3fast.data.classes import NUM_CLASSES
-from t3fast.data.synthetic import SyntheticFrames
 from t3fast.evaluation.reconstruction import evaluate_reconstruction
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.models.autoencoder import TriplaneAutoencoder
-from t3fast.training.configs import FramesConfig, Stage1Config
+from t3fast.training.autoencoder.frames import frames_dataset
+from t3fast.training.configs import Stage1Config
 from t3fast.training.losses import class_frequency_weights, occupancy_loss
 from t3fast.training.sampling import sample_query_points
-
-
-def frames_dataset(data: FramesConfig, split: str) -> Dataset:
-    """Single ``uint8 [200, 200, 16]`` frames of a split."""
-    if data.source == "synthetic":
-        scenes = data.train_scenes if split == "train" else data.val_scenes
-        return SyntheticFrames(split, scenes, data.frames_per_scene, flip=data.flip and split == "train")
-    if data.source == "occ3d":
-        from t3fast.data.occ3d_frames import Occ3DFrames
-
-        info = data.occ3d_train_info if split == "train" else data.occ3d_val_info
-        return Occ3DFrames(data.occ3d_root, info, flip=data.flip and split == "train")
-    raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
 
 
 class AutoencoderTask:

@@ -13,7 +13,7 @@ install:
 
 # The main job: metrics table and pictures of the shipped world models on held-out synthetic scenes.
 demo: install
-	$(PYTHON) -m t3fast.cli demo --out demo
+	$(PYTHON) -m t3fast demo --out demo
 
 # nvcc -c of every pure-CUDA kernel file (sm_80, sm_90); skipped where nvcc is absent.
 cuda-check:

@@ -34,8 +34,8 @@ def resolve(name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
     if path.is_file():
         return path
-    shipped = SHIPPED_DIR / f"{name_or_path}.pt"
-    if isinstance(name_or_path, str) and "/" not in name_or_path and shipped.is_file():
+    shipped = SHIPPED_DIR / f"{path.name}.pt"
+    if len(path.parts) == 1 and shipped.is_file():
         return shipped
     raise CheckpointError(f"{name_or_path}: neither a checkpoint file nor a shipped model "
                           f"({', '.join(shipped_names())})")

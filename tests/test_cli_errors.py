@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.io.checkpoint import save_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.training.configs import Stage1Config
@@ -96,7 +96,7 @@ def test_debug_shows_the_traceback(tmp_path, capsys):
 
 
 def test_bugs_keep_their_traceback(monkeypatch):
-    import t3fast.evaluation.commands as commands
+    import t3fast.commands.evaluate as commands
 
     def broken(*args, **kwargs):
         raise RuntimeError("a bug")

@@ -196,7 +196,7 @@ def _train_wm_steps(ctx: Context, d: Path) -> list[Step]:
     if not ae.is_file():  # the stage-1 burst failed: a one-step stage-1 checkpoint of the same size
         ae = d / "ae" / "last.pt"
         frames = ["data.train_scenes=1", "data.frames_per_scene=11", "train.batch_size=1"]
-        steps.append(Step("autoencoder", [PY, "-m", "t3fast.cli", "train-ae", "--config", config, "train.steps=1",
+        steps.append(Step("autoencoder", [PY, "-m", "t3fast", "train-ae", "--config", config, "train.steps=1",
                                           "train.eval_every=0", "train.tensorboard=false",
                                           f"train.device={ctx.device}", f"train.out_dir={ae.parent}", *frames]))
     frames = ["data.frames_per_scene=12"] if ctx.quick else []

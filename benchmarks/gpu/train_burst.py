@@ -98,7 +98,7 @@ class _Burst:
 
 
 def _cli(argv: list[str]) -> int:
-    from t3fast.cli import build_parser, main
+    from t3fast.commands.main import build_parser, main
 
     # tracebacks in the log instead of one-line errors, where the CLI has --debug
     has_debug = any("--debug" in action.option_strings for action in build_parser()._actions)

@@ -10,7 +10,7 @@ import pickle
 import numpy as np
 import pytest
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.data.occ3d import read_infos
 from t3fast.data.safe_pickle import load_restricted
 from t3fast.errors import DataFormatError

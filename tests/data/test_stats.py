@@ -5,8 +5,8 @@ import argparse
 import numpy as np
 import pytest
 
+from t3fast.commands.data import add_data_commands
 from t3fast.data import classes as C
-from t3fast.data.commands import add_data_commands
 from t3fast.data.stats import format_height_profile, height_profile
 from tests.data.conftest import FRAMES, SCENES, SPLIT
 

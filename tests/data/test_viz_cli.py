@@ -1,7 +1,7 @@
 import numpy as np
 from PIL import Image
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.data import classes as C
 from t3fast.viz.bev import bev_colours, bev_image, render_sample
 

@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.data.classes import DRIVEABLE_SURFACE, FREE, PEDESTRIAN
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.presets import preset

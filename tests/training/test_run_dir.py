@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.errors import ConfigError, UsageError
 from t3fast.training.trainer import Trainer
 from tests.training.test_trainer import ToyTask, toy_config

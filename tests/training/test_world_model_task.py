@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from t3fast.cli import main
+from t3fast.commands.main import main
 from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving

@@ -13,10 +13,11 @@ import traceback
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from t3fast.data.commands import add_data_commands
-    from t3fast.demo import add_demo_command
-    from t3fast.evaluation.commands import add_evaluation_commands
-    from t3fast.training.commands import add_training_commands
+    from t3fast.commands.data import add_data_commands
+    from t3fast.commands.demo import add_demo_command
+    from t3fast.commands.evaluate import add_evaluation_commands
+    from t3fast.commands.export import add_export_command
+    from t3fast.commands.train import add_training_commands
 
     parser = argparse.ArgumentParser(prog="t3fast", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
@@ -29,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_commands(sub)
     add_training_commands(sub)
     add_evaluation_commands(sub)
+    add_export_command(sub)
     _add_debug_everywhere(parser)
     return parser
 

@@ -1,13 +1,10 @@
-"""``t3fast train-ae``, ``t3fast eval-ae`` and ``t3fast train-wm``."""
+"""``t3fast train-ae`` and ``t3fast train-wm``."""
 
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
-
-from t3fast.cli_args import positive_int
-from t3fast.errors import UsageError
 
 
 def add_training_commands(sub: argparse._SubParsersAction) -> None:
@@ -26,14 +23,6 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(world)
     world.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=100 loss.rollout_steps=6")
     world.set_defaults(func=_train_wm)
-
-    evaluate = sub.add_parser("eval-ae", help="reconstruction table of a stage-1 checkpoint")
-    evaluate.add_argument("ckpt", type=Path, help="checkpoint (best.pt / last.pt)")
-    evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
-    evaluate.add_argument("--scenes", type=positive_int, default=10, help="synthetic scenes of the split")
-    evaluate.add_argument("--stride", type=positive_int, default=1, help="score every k-th frame")
-    evaluate.add_argument("--out", type=Path, help="write the results as JSON here")
-    evaluate.set_defaults(func=_eval_ae)
 
 
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
@@ -110,41 +99,3 @@ def _train_wm(args: argparse.Namespace) -> int:
     overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
     task = WorldModelTask(_config(Stage2Config, "wm", args.config, overrides))
     return _fit(task, task.cfg, ("encoder", "forecaster", "planner", "decoder"), f"world model {args.config}")
-
-
-def _eval_ae(args: argparse.Namespace) -> int:
-    from t3fast.data.synthetic import SyntheticFrames
-    from t3fast.device import default_device
-    from t3fast.evaluation.reconstruction import evaluate_reconstruction
-    from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
-    from t3fast.io.config import load_config
-    from t3fast.models.autoencoder import TriplaneAutoencoder
-    from t3fast.training.configs import Stage1Config
-
-    if args.out is not None and args.out.is_dir():
-        raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")
-    state = read_checkpoint(args.ckpt, AUTOENCODER)
-    cfg = load_config(Stage1Config, state["config"]["task"])
-    model = TriplaneAutoencoder(cfg.model)
-    model.load_state_dict(state["model"])
-    device = default_device()
-    model.to(device)
-    frames = SyntheticFrames(args.split, args.scenes, cfg.data.frames_per_scene)
-    indices = list(range(0, len(frames), args.stride))
-    metrics = evaluate_reconstruction(model, frames, indices, device=device)
-    summary = metrics.summary()
-    print(f"reconstruction, synthetic {args.split}: {args.scenes} scenes, {len(indices)} frames, step {state['step']}")
-    print(metrics.table())
-    print(f"mIoU (classes without ground truth skipped): {100 * metrics.miou(absent='skip'):.2f}")
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        summary.update(step=state["step"], split=args.split, frames=len(indices), latent=cfg.model.latent,
-                       latent_size=_latent_size(model))
-        args.out.write_text(json.dumps(summary, indent=2))
-    return 0
-
-
-def _latent_size(model) -> int:
-    x, y, z = model.config.plane_shape
-    c = model.config.channels
-    return c * x * y if model.config.latent == "bev" else c * (x * y + x * z + y * z)

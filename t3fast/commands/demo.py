@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from t3fast.cli_args import non_negative_int, positive_int
+from t3fast.commands.args import non_negative_int, positive_int
 from t3fast.errors import UsageError
 from t3fast.presets import shipped_world_models
 from t3fast.pretrained import SHIPPED_DIR
@@ -70,9 +70,9 @@ def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.d
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from t3fast.commands.evaluate import load_models
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.device import default_device
-    from t3fast.evaluation.commands import load_models
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
 
     start = time.perf_counter()

@@ -1,4 +1,5 @@
-"""``t3fast eval`` (the world-model table) and ``t3fast forecast`` (run a model on a sequence)."""
+"""``t3fast eval`` (the world-model table), ``t3fast eval-ae`` (the reconstruction table) and
+``t3fast forecast`` (run a model on a sequence)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from t3fast.cli_args import non_negative_int, positive_int
+from t3fast.commands.args import non_negative_int, positive_int
 from t3fast.device import default_device
 from t3fast.errors import DataFormatError, T3fastError, UsageError
 from t3fast.paths import check_name, inside, output_dir
@@ -18,7 +19,8 @@ from t3fast.paths import check_name, inside, output_dir
 def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate = sub.add_parser("eval", help="world-model table: forecasting, planning, speed; baselines and ablations")
     evaluate.add_argument("ckpt", type=Path, nargs="+",
-                          help="stage-2 checkpoints; each row is named after what it is (t3former, no_delta, ...)")
+                          help="stage-2 checkpoints or shipped names (wm-small, ...); each row is named after what "
+                               "it is (t3former, no_delta, ...)")
     evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
     evaluate.add_argument("--scenes", type=positive_int, default=10, help="synthetic scenes of the split")
     evaluate.add_argument("--stride", type=positive_int, default=8, help="frames between evaluated windows of a scene")
@@ -27,10 +29,18 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     evaluate.add_argument("--out", type=Path, help="write metrics.json and metrics.md here")
     evaluate.set_defaults(func=_eval)
 
+    evaluate = sub.add_parser("eval-ae", help="reconstruction table of a stage-1 checkpoint")
+    evaluate.add_argument("ckpt", type=Path, help="checkpoint (best.pt / last.pt)")
+    evaluate.add_argument("--split", default="test", choices=["train", "val", "test"])
+    evaluate.add_argument("--scenes", type=positive_int, default=10, help="synthetic scenes of the split")
+    evaluate.add_argument("--stride", type=positive_int, default=1, help="score every k-th frame")
+    evaluate.add_argument("--out", type=Path, help="write the results as JSON here")
+    evaluate.set_defaults(func=_eval_ae)
+
     forecast = sub.add_parser("forecast", help="forecast every window of an Occ3D-layout dataset")
     forecast.add_argument("--data", type=Path, required=True, help="directory holding gts/")
     forecast.add_argument("--info", type=Path, help="info pickle (default: the only *.pkl in --data)")
-    forecast.add_argument("--ckpt", type=Path, required=True, help="stage-2 checkpoint")
+    forecast.add_argument("--ckpt", type=Path, required=True, help="stage-2 checkpoint or shipped name (wm-small)")
     forecast.add_argument("--out", type=Path, required=True)
     forecast.add_argument("--stride", type=positive_int, default=6, help="frames between forecast windows of a scene")
     forecast.add_argument("--pictures", type=non_negative_int, default=4, help="windows that also get PNG/GIF pictures")
@@ -125,3 +135,41 @@ def _forecast(args: argparse.Namespace) -> int:
                                    plan, sample.trajectory.numpy())
     print(f"wrote {len(dataset)} forecasts under {args.out}")
     return 0
+
+
+def _eval_ae(args: argparse.Namespace) -> int:
+    from t3fast.data.synthetic import SyntheticFrames
+    from t3fast.device import default_device
+    from t3fast.evaluation.reconstruction import evaluate_reconstruction
+    from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
+    from t3fast.io.config import load_config
+    from t3fast.models.autoencoder import TriplaneAutoencoder
+    from t3fast.training.configs import Stage1Config
+
+    if args.out is not None and args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")
+    state = read_checkpoint(args.ckpt, AUTOENCODER)
+    cfg = load_config(Stage1Config, state["config"]["task"])
+    model = TriplaneAutoencoder(cfg.model)
+    model.load_state_dict(state["model"])
+    device = default_device()
+    model.to(device)
+    frames = SyntheticFrames(args.split, args.scenes, cfg.data.frames_per_scene)
+    indices = list(range(0, len(frames), args.stride))
+    metrics = evaluate_reconstruction(model, frames, indices, device=device)
+    summary = metrics.summary()
+    print(f"reconstruction, synthetic {args.split}: {args.scenes} scenes, {len(indices)} frames, step {state['step']}")
+    print(metrics.table())
+    print(f"mIoU (classes without ground truth skipped): {100 * metrics.miou(absent='skip'):.2f}")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        summary.update(step=state["step"], split=args.split, frames=len(indices), latent=cfg.model.latent,
+                       latent_size=_latent_size(model))
+        args.out.write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def _latent_size(model) -> int:
+    x, y, z = model.config.plane_shape
+    c = model.config.channels
+    return c * x * y if model.config.latent == "bev" else c * (x * y + x * z + y * z)

@@ -1,0 +1,39 @@
+"""``t3fast export``: a checkpoint slimmed for inference loads to the same model; bad input is refused."""
+
+from __future__ import annotations
+
+import torch
+
+import t3fast
+from t3fast.commands.main import main
+from t3fast.io.checkpoint import load_checkpoint
+from t3fast.pretrained import SHIPPED_DIR
+
+SHIPPED_WM = SHIPPED_DIR / "wm-small.pt"
+
+
+def test_export_keeps_weights_and_config(tmp_path, capsys):
+    out = tmp_path / "wm.pt"
+    assert main(["export", str(SHIPPED_WM), str(out), "--dtype", "float32"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    state = load_checkpoint(out)
+    assert set(state) == {"model", "config", "step"}
+    assert all(v.dtype == torch.float32 for v in state["model"].values() if v.is_floating_point())
+    exported, shipped = t3fast.load_world_model(out), t3fast.load_world_model("wm-small")
+    for (k, a), b in zip(exported.state_dict().items(), shipped.state_dict().values()):
+        assert torch.equal(a, b), k
+
+
+def test_export_refuses_what_is_not_a_checkpoint(tmp_path, capsys):
+    plain = tmp_path / "plain.pt"
+    torch.save({"w": torch.zeros(2)}, plain)
+    assert main(["export", str(plain), str(tmp_path / "out.pt")]) == 1
+    assert "not a t3fast checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "out.pt").exists()
+
+
+def test_export_refuses_to_overwrite_its_source_or_a_folder(tmp_path, capsys):
+    assert main(["export", str(SHIPPED_WM), str(SHIPPED_WM)]) == 2
+    assert "would lose its training state" in capsys.readouterr().err
+    assert main(["export", str(SHIPPED_WM), str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err

@@ -2,7 +2,7 @@
 PYTHON ?= python
 PIP := $(PYTHON) -m pip
 
-.PHONY: install demo test cuda-check bench lint
+.PHONY: install browser demo test cuda-check bench lint
 
 # Installs what is missing, then builds the kernels. torch is only installed when absent:
 # 2.13.0 is the CPU build these machines carry on disk; a GPU machine keeps its CUDA torch.
@@ -11,7 +11,15 @@ install:
 	$(PIP) install numpy tqdm matplotlib pyyaml pybind11 ninja pytest pytest-benchmark ruff==0.17.6
 	$(PIP) install --no-build-isolation -e .
 
-# The main job: metrics table and pictures of the shipped world models on held-out synthetic scenes.
+# Headless Chromium for the 3D viewer's browser tests (Debian package; they are skipped without it).
+browser:
+	@command -v chromium >/dev/null || command -v chromium-browser >/dev/null || \
+	  apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || \
+	  (apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium) || \
+	  echo "chromium could not be installed: the browser tests will be skipped"
+
+# The main job: metrics, pictures and 3D pages of the shipped world models on held-out synthetic
+# scenes; it ends by printing the path of demo/index.html.
 demo: install
 	$(PYTHON) -m t3fast demo --out demo
 
@@ -22,7 +30,7 @@ cuda-check:
 lint:
 	$(PYTHON) -m ruff check t3fast tests benchmarks setup.py
 
-test: install cuda-check lint
+test: install browser cuda-check lint
 	$(PYTHON) -m pytest -q
 
 bench: install

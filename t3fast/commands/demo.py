@@ -5,8 +5,9 @@ that are shipped, trained on synthetic data by the commands in the README) or th
 ``--ckpt-dir``,
 evaluates them and the baselines on held-out synthetic test scenes, and writes into the
 output folder ``metrics.json``, ``metrics.md`` and, for a few test windows, pictures of
-past / predicted / ground-truth BEV frames with planned vs true trajectory (PNG and GIF), and
-for the first one also the forecast steered to a stop.
+past / predicted / ground-truth BEV frames with planned vs true trajectory (PNG and GIF) and
+in 3D (HTML), for the first one also the forecast steered to a stop, and ``index.html`` with
+the tables, the per-horizon curves, the pictures and links to the 3D pages: what to open first.
 """
 
 from __future__ import annotations
@@ -45,9 +46,10 @@ def checkpoint_paths(folder: Path) -> list[Path]:
 
 @torch.no_grad()
 def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.device) -> list[Path]:
-    """PNG + GIF of the forecasts of ``indices``."""
+    """PNG + GIF and a 3D page (HTML) of the forecasts of ``indices``."""
     from t3fast.data.sample import PRESENT, collate_samples
     from t3fast.viz.bev import save_forecast_pictures
+    from t3fast.viz.viewer import write_window_viewer
 
     written = []
     for n, i in enumerate(indices):
@@ -59,6 +61,8 @@ def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.d
             out / name, sample.past_occ.numpy(), forecast.labels[0].cpu().numpy(),
             sample.future_occ.numpy(), forecast.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),
         )
+        written.append(write_window_viewer(out / f"{name}.html", sample, forecast.labels[0].cpu().numpy(),
+                                           forecast.trajectory[0].cpu().numpy(), f"T3Former forecast, {name}"))
         if n == 0 and model.ego_aligned:  # steered: the same window if the ego stopped now
             stop = torch.zeros_like(forecast.actions)
             steered = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1], future_actions=stop)
@@ -74,6 +78,7 @@ def _demo(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.device import default_device
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
+    from t3fast.viz.index_page import write_index
 
     start = time.perf_counter()
     device = default_device()
@@ -86,8 +91,11 @@ def _demo(args: argparse.Namespace) -> int:
     per_scene = len(dataset) // args.scenes
     picks = [k * per_scene for k in range(min(args.pictures, args.scenes))]
     paths += save_pictures(models["t3former"], dataset, picks, args.out / "pictures", device)
+    views = [p for p in paths if p.suffix == ".html"]
+    pictures = [p for p in paths if p.suffix in (".png", ".gif")]
+    index = write_index(args.out, results, title, pictures, views)
     print(metrics_markdown(results, title))
     for path in paths:
         print(f"wrote {path}")
-    print(f"demo finished in {time.perf_counter() - start:.0f} s")
+    print(f"demo finished in {time.perf_counter() - start:.0f} s; open {index.resolve()}")
     return 0

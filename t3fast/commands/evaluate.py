@@ -43,7 +43,8 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     forecast.add_argument("--ckpt", type=Path, required=True, help="stage-2 checkpoint or shipped name (wm-small)")
     forecast.add_argument("--out", type=Path, required=True)
     forecast.add_argument("--stride", type=positive_int, default=6, help="frames between forecast windows of a scene")
-    forecast.add_argument("--pictures", type=non_negative_int, default=4, help="windows that also get PNG/GIF pictures")
+    forecast.add_argument("--pictures", type=non_negative_int, default=4,
+                          help="windows that also get PNG/GIF pictures and a 3D page (HTML)")
     forecast.set_defaults(func=_forecast)
 
 
@@ -83,7 +84,8 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _find_info(data: Path) -> Path:
+def find_info(data: Path) -> Path:
+    """The only info pickle in an Occ3D-layout folder."""
     found = sorted(data.glob("*.pkl"))
     if len(found) != 1:
         raise UsageError(f"found {len(found)} info pickles in {data}; pass --info")
@@ -106,11 +108,12 @@ def _forecast(args: argparse.Namespace) -> int:
     from t3fast.data.sample import PRESENT, collate_samples
     from t3fast.pretrained import load_world_model
     from t3fast.viz.bev import save_forecast_pictures
+    from t3fast.viz.viewer import write_window_viewer
 
     if not args.data.is_dir():
         raise UsageError(f"--data {args.data} is not a folder")
     out_root = output_dir(args.out)
-    info = args.info or _find_info(args.data)
+    info = args.info or find_info(args.data)
     # the info file and the arguments are checked before the model is loaded or run
     dataset = Occ3DNuScenes(args.data, info, stride=args.stride)
     if len(dataset) == 0:
@@ -133,6 +136,7 @@ def _forecast(args: argparse.Namespace) -> int:
         if i < args.pictures:
             save_forecast_pictures(folder / "forecast", sample.past_occ.numpy(), labels, sample.future_occ.numpy(),
                                    plan, sample.trajectory.numpy())
+            write_window_viewer(folder / "forecast.html", sample, labels, plan, f"forecast, {sample.scene} {token}")
     print(f"wrote {len(dataset)} forecasts under {args.out}")
     return 0
 

@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     from t3fast.commands.evaluate import add_evaluation_commands
     from t3fast.commands.export import add_export_command
     from t3fast.commands.train import add_training_commands
+    from t3fast.commands.view import add_view_command
 
     parser = argparse.ArgumentParser(prog="t3fast", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
@@ -31,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_training_commands(sub)
     add_evaluation_commands(sub)
     add_export_command(sub)
+    add_view_command(sub)
     _add_debug_everywhere(parser)
     return parser
 

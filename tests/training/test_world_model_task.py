@@ -23,6 +23,7 @@ from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.task import WorldModelTask
 from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window, rollout_frames
+from t3fast.viz.viewer import read_viewer_data
 
 from ..models.test_world_model import tiny_world_model
 
@@ -141,6 +142,10 @@ def test_forecast_writes_occ3d_labels_and_pictures(world_ckpt, tmp_path):
     assert Image.open(gif).n_frames == 11 and next(out.rglob("forecast.png")).exists()
     plan = json.loads(next(out.rglob("trajectory.json")).read_text())
     assert len(plan["planned"]) == 6
+    page = next(out.rglob("forecast.html"))  # the 3D view of the same forecast
+    shown = read_viewer_data(page)["sequences"]["predicted"]
+    written = np.stack([np.load(page.parent / f"future_{k}" / "labels.npz")["semantics"] for k in range(1, 7)])
+    np.testing.assert_array_equal(shown, written)
 
 
 def test_demo_runs_on_given_checkpoints(world_ckpt, tmp_path, capsys):
@@ -153,7 +158,10 @@ def test_demo_runs_on_given_checkpoints(world_ckpt, tmp_path, capsys):
     assert {"metrics.json", "metrics.md", "pictures"} <= {p.name for p in out.iterdir()}
     gifs = sorted(p.name for p in (out / "pictures").glob("*.gif"))  # the window, and it steered to a stop
     assert gifs == ["synthetic-test-00000-t00-steered-stop.gif", "synthetic-test-00000-t00.gif"]
-    assert "demo finished" in capsys.readouterr().out
+    index = (out / "index.html").read_text()
+    assert 'href="pictures/synthetic-test-00000-t00.html"' in index and "t3former" in index
+    assert "<svg" in index and 'src="pictures/synthetic-test-00000-t00.png"' in index
+    assert capsys.readouterr().out.rstrip().endswith(f"open {(out / 'index.html').resolve()}")
 
 
 def test_stage2_rejects_a_missing_autoencoder(tmp_path, capsys):

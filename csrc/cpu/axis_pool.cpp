@@ -61,9 +61,8 @@ T3FAST_SIMD_CLONES void unpool_rows(const T* gxy, const T* gxz, const T* gyz, T*
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& volume) {
-  check_volume(volume, kOp);
-  const int64_t B = volume.size(0), C = volume.size(1), X = volume.size(2), Y = volume.size(3),
-                Z = volume.size(4);
+  const VolumeShape s = check_volume(volume, kOp);
+  const int64_t B = s.B, C = s.C, X = s.X, Y = s.Y, Z = s.Z;
   const at::Tensor v = volume.contiguous();
   at::Tensor xy = at::empty({B, C, X, Y}, v.options());
   at::Tensor xz = at::empty({B, C, X, Z}, v.options());
@@ -85,9 +84,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cpu(const at::Tensor& v
 
 at::Tensor axis_pool_backward_cpu(const at::Tensor& grad_xy, const at::Tensor& grad_xz,
                                   const at::Tensor& grad_yz) {
-  check_plane_grads(grad_xy, grad_xz, grad_yz, kOpBwd);
-  const int64_t B = grad_xy.size(0), C = grad_xy.size(1), X = grad_xy.size(2),
-                Y = grad_xy.size(3), Z = grad_xz.size(3);
+  const VolumeShape s = check_planes(grad_xy, grad_xz, grad_yz, kPlaneGrads, kOpBwd);
+  const int64_t B = s.B, C = s.C, X = s.X, Y = s.Y, Z = s.Z;
   const at::Tensor gxy = grad_xy.contiguous(), gxz = grad_xz.contiguous(),
                    gyz = grad_yz.contiguous();
   at::Tensor out = at::empty({B, C, X, Y, Z}, gxy.options());

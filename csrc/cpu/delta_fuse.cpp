@@ -65,9 +65,8 @@ at::Tensor delta_fuse_cpu(const at::Tensor& delta, const at::Tensor& prev,
   // The kernel uses ATen ops internally (also on worker threads, which do not inherit this
   // guard; they only see detached tensors); they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  check_delta_fuse(delta, prev, weight, bias, kOp);
-  const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
-  const int64_t HW = delta.size(2) * delta.size(3);
+  const DeltaFuseShape s = check_delta_fuse(delta, prev, weight, bias, kOp);
+  const int64_t B = s.B, C = s.C, Cin = s.C_in, HW = s.H * s.W;
   const at::Tensor d = delta.detach().contiguous().view({B, C, HW});
   const at::Tensor pv = prev.detach().contiguous().view({B, Cin, HW});
   const at::Tensor w = weight.detach().contiguous();
@@ -98,9 +97,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cpu(
     const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  check_delta_fuse_backward(grad_out, prev, weight, kOpBwd);
-  const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
-  const int64_t HW = prev.size(2) * prev.size(3);
+  const DeltaFuseShape s = check_delta_fuse_backward(grad_out, prev, weight, kOpBwd);
+  const int64_t B = s.B, C = s.C, Cin = s.C_in, HW = s.H * s.W;
   const at::Tensor g = grad_out.detach().contiguous().view({B, C, HW});
   const at::Tensor pv = prev.detach().contiguous().view({B, Cin, HW});
   const at::Tensor w = weight.detach().contiguous();

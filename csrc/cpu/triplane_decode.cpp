@@ -16,10 +16,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 #include <vector>
 
-#include "checks.h"
 #include "cpu/simd.h"
+#include "triplane_args.h"
 
 namespace t3fast {
 namespace {
@@ -95,41 +96,20 @@ T3FAST_SIMD_CLONES void relu_backward(T* grad, const T* out, int64_t n) {
   for (int64_t i = 0; i < n; ++i) grad[i] = out[i] > T(0) ? grad[i] : T(0);
 }
 
-// Everything the kernels need to know about one call, with channels-last planes.
-struct Problem {
-  at::Tensor xy, xz, yz;  // [B, X', Y', C], [B, X', Z', C], [B, Y', Z', C], contiguous
-  std::vector<at::Tensor> weights, biases;  // contiguous
-  at::Tensor points;                        // [B, N, 3] contiguous, or undefined (grid mode)
-  int64_t B, C, PX, PY, PZ;                 // batch, channels, plane sizes
-  int64_t GX = 0, GY = 0, GZ = 0;           // grid sizes (grid mode)
-  int64_t per_batch;                        // queries per batch element
-  int64_t pe_freqs;
-  std::vector<int64_t> widths;              // [in_0, out_0, ..., out_{L-1}]
+// Everything the kernels need to know about one call: the checked sizes and the tensors,
+// contiguous, with channels-last planes.
+struct Problem : TriplaneProblem {
+  at::Tensor xy, xz, yz;  // [B, X', Y', C], [B, X', Z', C], [B, Y', Z', C]
+  std::vector<at::Tensor> weights, biases;
+  at::Tensor points;  // [B, N, 3], or undefined (grid mode)
 
-  int64_t layers() const { return static_cast<int64_t>(weights.size()); }
-  int64_t classes() const { return widths.back(); }
-  int64_t max_width() const { return *std::max_element(widths.begin(), widths.end()); }
-  bool grid_mode() const { return !points.defined(); }
-  std::vector<int64_t> out_shape() const {
-    if (grid_mode()) return {B, GX, GY, GZ};
-    return {B, per_batch};
-  }
+  explicit Problem(TriplaneProblem sizes) : TriplaneProblem(std::move(sizes)) {}
 };
 
-Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
-                     at::TensorList weights, at::TensorList biases,
-                     const c10::optional<at::Tensor>& points, c10::OptionalIntArrayRef grid,
-                     int64_t pe_freqs, const char* op) {
-  check_planes(xy, xz, yz, op);
-  check_query(xy, points, grid, pe_freqs, op);
-  Problem p;
-  p.B = xy.size(0);
-  p.C = xy.size(1);
-  p.PX = xy.size(2);
-  p.PY = xy.size(3);
-  p.PZ = xz.size(3);
-  p.pe_freqs = pe_freqs;
-  p.widths = check_mlp(weights, biases, xy, p.C + 6 * pe_freqs, op);
+Problem make_problem(TriplaneProblem sizes, const at::Tensor& xy, const at::Tensor& xz,
+                     const at::Tensor& yz, at::TensorList weights, at::TensorList biases,
+                     const c10::optional<at::Tensor>& points) {
+  Problem p(std::move(sizes));
   // Detached: the worker threads of at::parallel_for do not inherit the caller's dispatch
   // guards, and the GEMMs they run must not see tensors that require grad.
   p.xy = xy.detach().permute({0, 2, 3, 1}).contiguous();
@@ -139,15 +119,7 @@ Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tenso
     p.weights.push_back(weights[i].detach().contiguous());
     p.biases.push_back(biases[i].detach().contiguous());
   }
-  if (points.has_value()) {
-    p.points = points->detach().contiguous();
-    p.per_batch = p.points.size(1);
-  } else {
-    p.GX = (*grid)[0];
-    p.GY = (*grid)[1];
-    p.GZ = (*grid)[2];
-    p.per_batch = p.GX * p.GY * p.GZ;
-  }
+  if (points.has_value()) p.points = points->detach().contiguous();
   return p;
 }
 
@@ -410,20 +382,13 @@ at::Tensor triplane_decode_cpu(const at::Tensor& xy, const at::Tensor& xz, const
                                c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOp);
-  T3FAST_CHECK(!argmax || (p.classes() >= 1 && p.classes() <= 256), kOp,
-               "argmax=True needs 1 to 256 classes (uint8 labels), got ", p.classes());
-  auto shape = p.out_shape();
-  at::Tensor out;
-  if (argmax) {
-    out = at::empty(shape, xy.options().dtype(at::kByte));
-  } else {
-    shape.push_back(p.classes());
-    out = at::empty(shape, xy.options());
-  }
+  const Problem p = make_problem(
+      parse_triplane_args(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, kOp), xy,
+      xz, yz, weights, biases, points);
+  at::Tensor out = p.empty_output(xy, argmax);
   if (out.numel() == 0) return out;
   AT_DISPATCH_FLOATING_TYPES(xy.scalar_type(), "triplane_decode_cpu", [&] {
-    if (p.grid_mode()) {
+    if (p.grid_mode) {
       forward_grid<scalar_t>(p, out, argmax);
     } else {
       forward_features<scalar_t>(p, out, argmax);
@@ -518,10 +483,10 @@ triplane_decode_backward_cpu(const at::Tensor& grad_out, const at::Tensor& xy,
                              c10::OptionalIntArrayRef grid, int64_t pe_freqs) {
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOpBwd);
-  auto shape = p.out_shape();
-  shape.push_back(p.classes());
-  check_grad_out(grad_out, xy, shape, kOpBwd);
+  const Problem p = make_problem(parse_triplane_backward_args(grad_out, xy, xz, yz, weights,
+                                                              biases, points, grid, pe_freqs,
+                                                              kOpBwd),
+                                 xy, xz, yz, weights, biases, points);
   const at::Tensor go = grad_out.detach().contiguous().view({-1, p.classes()});
   const int64_t total = go.size(0);
   const int64_t chunks = (total + kChunk - 1) / kChunk;

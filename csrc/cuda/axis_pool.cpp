@@ -1,5 +1,5 @@
-// CUDA glue of axis_pool and its backward: argument checks (as on CPU), allocation, dtype
-// dispatch and launches of the kernels in axis_pool_kernel.cu.
+// CUDA glue of axis_pool and its backward: argument checks (shared with the CPU), allocation,
+// dtype dispatch and launches of the kernels in axis_pool_kernel.cu.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/core/DeviceGuard.h>
@@ -10,6 +10,8 @@
 
 #include "checks.h"
 #include "cuda/kernels.h"
+#include "cuda/runtime.h"
+#include "cuda/scalar_types.h"
 #include "cuda/stream.h"
 
 namespace t3fast {
@@ -18,16 +20,9 @@ namespace {
 constexpr const char* kOp = "axis_pool";
 constexpr const char* kOpBwd = "axis_pool_backward";
 
-int device_attribute(cudaDeviceAttr attr, int device, const char* op) {
-  int value = 0;
-  check_launch(cudaDeviceGetAttribute(&value, attr, device), op);
-  return value;
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cuda(const at::Tensor& volume) {
-  check_volume(volume, kOp);
-  const int64_t B = volume.size(0), C = volume.size(1), X = volume.size(2), Y = volume.size(3),
-                Z = volume.size(4);
+  const VolumeShape s = check_volume(volume, kOp);
+  const int64_t B = s.B, C = s.C, X = s.X, Y = s.Y, Z = s.Z;
   T3FAST_CHECK(X <= INT_MAX && Y * Z <= INT_MAX, kOp,
                "volume must have X < 2^31 and Y * Z < 2^31 on CUDA, got ", volume.sizes());
   const c10::DeviceGuard device_guard(volume.device());
@@ -67,9 +62,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cuda(const at::Tensor& 
 
 at::Tensor axis_pool_backward_cuda(const at::Tensor& grad_xy, const at::Tensor& grad_xz,
                                    const at::Tensor& grad_yz) {
-  check_plane_grads(grad_xy, grad_xz, grad_yz, kOpBwd);
-  const int64_t B = grad_xy.size(0), C = grad_xy.size(1), X = grad_xy.size(2),
-                Y = grad_xy.size(3), Z = grad_xz.size(3);
+  const VolumeShape s = check_planes(grad_xy, grad_xz, grad_yz, kPlaneGrads, kOpBwd);
+  const int64_t B = s.B, C = s.C, X = s.X, Y = s.Y, Z = s.Z;
   T3FAST_CHECK(B * C * X <= INT_MAX && Y * Z <= INT_MAX, kOpBwd,
                "the volume gradient must have B * C * X < 2^31 and Y * Z < 2^31 on CUDA, got ",
                "[", B, ", ", C, ", ", X, ", ", Y, ", ", Z, "]");

@@ -1,5 +1,5 @@
-// CUDA glue of delta_fuse and its backward: argument checks (as on CPU), allocation, dtype
-// dispatch and launches of the kernels in delta_fuse_kernel.cu.
+// CUDA glue of delta_fuse and its backward: argument checks (shared with the CPU), allocation,
+// dtype dispatch and launches of the kernels in delta_fuse_kernel.cu.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/core/DeviceGuard.h>
@@ -10,6 +10,8 @@
 
 #include "checks.h"
 #include "cuda/kernels.h"
+#include "cuda/runtime.h"
+#include "cuda/scalar_types.h"
 #include "cuda/stream.h"
 
 namespace t3fast {
@@ -26,11 +28,10 @@ void check_channels(const at::Tensor& weight, const char* op) {
 
 at::Tensor delta_fuse_cuda(const at::Tensor& delta, const at::Tensor& prev,
                            const at::Tensor& weight, const c10::optional<at::Tensor>& bias) {
-  check_delta_fuse(delta, prev, weight, bias, kOp);
+  const DeltaFuseShape s = check_delta_fuse(delta, prev, weight, bias, kOp);
+  const int64_t B = s.B, C = s.C, Cin = s.C_in, HW = s.H * s.W;
   check_channels(weight, kOp);
   const c10::DeviceGuard device_guard(delta.device());
-  const int64_t B = delta.size(0), C = delta.size(1), Cin = prev.size(1);
-  const int64_t HW = delta.size(2) * delta.size(3);
   const at::Tensor d = delta.detach().contiguous();
   const at::Tensor pv = prev.detach().contiguous();
   const at::Tensor w = weight.detach().contiguous();
@@ -53,11 +54,10 @@ at::Tensor delta_fuse_cuda(const at::Tensor& delta, const at::Tensor& prev,
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cuda(
     const at::Tensor& grad_out, const at::Tensor& prev, const at::Tensor& weight) {
-  check_delta_fuse_backward(grad_out, prev, weight, kOpBwd);
+  const DeltaFuseShape s = check_delta_fuse_backward(grad_out, prev, weight, kOpBwd);
+  const int64_t B = s.B, C = s.C, Cin = s.C_in, HW = s.H * s.W;
   check_channels(weight, kOpBwd);
   const c10::DeviceGuard device_guard(prev.device());
-  const int64_t B = prev.size(0), C = weight.size(0), Cin = prev.size(1);
-  const int64_t HW = prev.size(2) * prev.size(3);
   const bool dbl = prev.scalar_type() == at::kDouble;
   const at::Tensor g = grad_out.detach().contiguous();
   const at::Tensor pv = prev.detach().contiguous();
@@ -67,10 +67,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cuda(
   at::Tensor gw = at::zeros({C, Cin}, acc_opts);
   at::Tensor gb = at::zeros({C}, acc_opts);
   if (B * HW > 0) {
-    int available = 0;
-    check_launch(cudaDeviceGetAttribute(&available, cudaDevAttrMaxSharedMemoryPerBlockOptin,
-                                        pv.get_device()),
-                 kOpBwd);
+    const int available =
+        device_attribute(cudaDevAttrMaxSharedMemoryPerBlockOptin, pv.get_device(), kOpBwd);
     const size_t need = cuda::delta_fuse_backward_min_shared_bytes(
         static_cast<int>(C), static_cast<int>(Cin), dbl);
     T3FAST_CHECK(need <= static_cast<size_t>(available), kOpBwd, "C + C_in = ", C + Cin,

@@ -1,4 +1,4 @@
-// CUDA glue of triplane_decode and its backward: argument checks (as on CPU), allocation,
+// CUDA glue of triplane_decode and its backward: CUDA's limits on the arguments, allocation,
 // dtype dispatch and launches of the kernels in triplane_decode_kernel.cu.
 //
 // Forward: one fused kernel (see triplane_decode_kernel.cu).
@@ -17,11 +17,15 @@
 #include <algorithm>
 #include <climits>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 #include "checks.h"
 #include "cuda/kernels.h"
+#include "cuda/runtime.h"
+#include "cuda/scalar_types.h"
 #include "cuda/stream.h"
+#include "triplane_args.h"
 
 namespace t3fast {
 namespace {
@@ -31,39 +35,25 @@ constexpr const char* kOpBwd = "triplane_decode_backward";
 // Points per backward chunk: the recomputed activations take 64 MiB per 256-wide layer.
 constexpr int64_t kBackwardChunk = 65536;
 
-// Validated arguments, contiguous, on the device of xy.
-struct Problem {
+// The checked sizes and the tensors, contiguous, on the device of xy.
+struct Problem : TriplaneProblem {
   at::Tensor xy, xz, yz;
   at::Tensor points;  // [B, N, 3], undefined in grid mode
   std::vector<at::Tensor> weights, biases;
-  std::vector<int64_t> widths;  // [in_0, out_0, ..., out_{L-1}]
-  int64_t grid[3] = {0, 0, 0};
-  int64_t per_batch = 0;  // query points per batch element
-  int64_t pe_freqs = 0;
 
-  int64_t layers() const { return static_cast<int64_t>(weights.size()); }
-  int64_t classes() const { return widths.back(); }
-  std::vector<int64_t> out_shape() const {
-    if (!points.defined()) return {xy.size(0), grid[0], grid[1], grid[2]};
-    return {xy.size(0), per_batch};
-  }
+  explicit Problem(TriplaneProblem sizes) : TriplaneProblem(std::move(sizes)) {}
 };
 
-Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
-                     at::TensorList weights, at::TensorList biases,
-                     const c10::optional<at::Tensor>& points, c10::OptionalIntArrayRef grid,
-                     int64_t pe_freqs, const char* op) {
-  check_planes(xy, xz, yz, op);
-  check_query(xy, points, grid, pe_freqs, op);
-  Problem p;
-  p.pe_freqs = pe_freqs;
-  p.widths = check_mlp(weights, biases, xy, xy.size(1) + 6 * pe_freqs, op);
+Problem make_problem(TriplaneProblem sizes, const at::Tensor& xy, const at::Tensor& xz,
+                     const at::Tensor& yz, at::TensorList weights, at::TensorList biases,
+                     const c10::optional<at::Tensor>& points, const char* op) {
+  Problem p(std::move(sizes));
   // The kernels index plane rows/columns, channels and grid cells with 32-bit integers.
-  for (const auto* t : {&xy, &xz, &yz}) {
-    T3FAST_CHECK(t->size(1) <= INT_MAX && t->size(2) <= INT_MAX && t->size(3) <= INT_MAX, op,
-                 "plane channels and sizes must be < 2^31 on CUDA, got xy ", xy.sizes(), ", xz ",
-                 xz.sizes(), ", yz ", yz.sizes());
-  }
+  T3FAST_CHECK(p.C <= INT_MAX && p.PX <= INT_MAX && p.PY <= INT_MAX && p.PZ <= INT_MAX, op,
+               "plane channels and sizes must be < 2^31 on CUDA, got xy ", xy.sizes(), ", xz ",
+               xz.sizes(), ", yz ", yz.sizes());
+  T3FAST_CHECK(p.GX <= INT_MAX && p.GY <= INT_MAX && p.GZ <= INT_MAX, op,
+               "grid sizes must be < 2^31 on CUDA, got [", p.GX, ", ", p.GY, ", ", p.GZ, "]");
   p.xy = xy.detach().contiguous();
   p.xz = xz.detach().contiguous();
   p.yz = yz.detach().contiguous();
@@ -71,16 +61,7 @@ Problem make_problem(const at::Tensor& xy, const at::Tensor& xz, const at::Tenso
     p.weights.push_back(weights[i].detach().contiguous());
     p.biases.push_back(biases[i].detach().contiguous());
   }
-  if (points.has_value()) {
-    p.points = points->detach().contiguous();
-    p.per_batch = p.points.size(1);
-  } else {
-    for (int d = 0; d < 3; ++d) {
-      T3FAST_CHECK((*grid)[d] <= INT_MAX, op, "grid sizes must be < 2^31 on CUDA, got ", *grid);
-      p.grid[d] = (*grid)[d];
-    }
-    p.per_batch = p.grid[0] * p.grid[1] * p.grid[2];
-  }
+  if (points.has_value()) p.points = points->detach().contiguous();
   return p;
 }
 
@@ -90,11 +71,11 @@ cuda::Triplane<T> triplane_of(const Problem& p) {
   t.xy = ptr<const T>(p.xy);
   t.xz = ptr<const T>(p.xz);
   t.yz = ptr<const T>(p.yz);
-  t.batch = p.xy.size(0);
-  t.channels = static_cast<int>(p.xy.size(1));
-  t.sx = static_cast<int>(p.xy.size(2));
-  t.sy = static_cast<int>(p.xy.size(3));
-  t.sz = static_cast<int>(p.xz.size(3));
+  t.batch = p.B;
+  t.channels = static_cast<int>(p.C);
+  t.sx = static_cast<int>(p.PX);
+  t.sy = static_cast<int>(p.PY);
+  t.sz = static_cast<int>(p.PZ);
   return t;
 }
 
@@ -103,9 +84,9 @@ cuda::Query<T> query_of(const Problem& p) {
   cuda::Query<T> q;
   q.points = p.points.defined() ? ptr<const T>(p.points) : nullptr;
   q.num_points = p.per_batch;
-  q.gx = static_cast<int>(p.grid[0]);
-  q.gy = static_cast<int>(p.grid[1]);
-  q.gz = static_cast<int>(p.grid[2]);
+  q.gx = static_cast<int>(p.GX);
+  q.gy = static_cast<int>(p.GY);
+  q.gz = static_cast<int>(p.GZ);
   return q;
 }
 
@@ -113,41 +94,31 @@ cuda::Query<T> query_of(const Problem& p) {
 void check_fused_limits(const Problem& p, const char* op) {
   T3FAST_CHECK(p.layers() <= cuda::kTriplaneMaxLayers, op, "the CUDA kernel supports at most ",
                cuda::kTriplaneMaxLayers, " layers, got ", p.layers());
-  const int64_t widest = *std::max_element(p.widths.begin(), p.widths.end());
-  T3FAST_CHECK(widest <= cuda::kTriplaneMaxWidth, op,
+  T3FAST_CHECK(p.max_width() <= cuda::kTriplaneMaxWidth, op,
                "the CUDA kernel supports widths (C + 6 * pe_freqs and every layer's out "
                "features) up to ",
-               cuda::kTriplaneMaxWidth, ", got widths ", p.widths);
+               cuda::kTriplaneMaxWidth, ", got widths ", at::IntArrayRef(p.widths));
   std::vector<int> widths(p.widths.begin(), p.widths.end());
   const bool dbl = p.xy.scalar_type() == at::kDouble;
   const size_t need =
       cuda::triplane_decode_min_shared_bytes(widths.data(), static_cast<int>(p.layers()), dbl);
-  int available = 0;
-  check_launch(cudaDeviceGetAttribute(&available, cudaDevAttrMaxSharedMemoryPerBlockOptin,
-                                      p.xy.get_device()),
-               op);
-  T3FAST_CHECK(need <= static_cast<size_t>(available), op, "layer widths ", p.widths, " need ",
-               need, " bytes of shared memory per block in ", p.xy.scalar_type(),
-               " but the device offers ", available, "; use narrower layers",
-               dbl ? " or float32" : "");
+  const int available =
+      device_attribute(cudaDevAttrMaxSharedMemoryPerBlockOptin, p.xy.get_device(), op);
+  T3FAST_CHECK(need <= static_cast<size_t>(available), op, "layer widths ",
+               at::IntArrayRef(p.widths), " need ", need, " bytes of shared memory per block in ",
+               p.xy.scalar_type(), " but the device offers ", available,
+               "; use narrower layers", dbl ? " or float32" : "");
 }
 
 at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
                                 at::TensorList weights, at::TensorList biases,
                                 const c10::optional<at::Tensor>& points,
                                 c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
-  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOp);
-  T3FAST_CHECK(!argmax || p.classes() <= 256, kOp, "argmax=True needs at most 256 classes ",
-               "(uint8 labels), got ", p.classes());
+  const Problem p = make_problem(
+      parse_triplane_args(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, kOp), xy,
+      xz, yz, weights, biases, points, kOp);
   const c10::DeviceGuard device_guard(xy.device());
-  auto shape = p.out_shape();
-  at::Tensor out;
-  if (argmax) {
-    out = at::empty(shape, xy.options().dtype(at::kByte));
-  } else {
-    shape.push_back(p.classes());
-    out = at::empty(shape, xy.options());
-  }
+  at::Tensor out = p.empty_output(xy, argmax);
   if (out.numel() == 0) return out;
   check_fused_limits(p, kOp);
   const cudaStream_t stream = current_stream(xy.get_device());
@@ -178,17 +149,17 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
                               c10::OptionalIntArrayRef grid, int64_t pe_freqs) {
   // The GEMMs below are ATen ops; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
-  const Problem p = make_problem(xy, xz, yz, weights, biases, points, grid, pe_freqs, kOpBwd);
-  auto shape = p.out_shape();
-  shape.push_back(p.classes());
-  check_grad_out(grad_out, xy, shape, kOpBwd);
+  const Problem p = make_problem(parse_triplane_backward_args(grad_out, xy, xz, yz, weights,
+                                                              biases, points, grid, pe_freqs,
+                                                              kOpBwd),
+                                 xy, xz, yz, weights, biases, points, kOpBwd);
   const c10::DeviceGuard device_guard(xy.device());
 
   const at::ScalarType acc = xy.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
   const auto opts = xy.options().dtype(acc);
   const int64_t L = p.layers();
   const int64_t in0 = p.widths[0];
-  const int64_t total = xy.size(0) * p.per_batch;
+  const int64_t total = p.B * p.per_batch;
   const at::Tensor go = grad_out.detach().contiguous().view({total, p.classes()});
   std::vector<at::Tensor> w, b, gw, gb;
   for (int64_t l = 0; l < L; ++l) {

@@ -58,11 +58,11 @@ def test_triplane_decode_rejects(overrides, pattern):
         call_decode(decode_args(**overrides))
 
 
-def test_triplane_decode_argmax_needs_few_classes():
-    args = decode_args(weights=[torch.randn(8, 10), torch.randn(300, 8)],
-                       biases=[torch.randn(8), torch.randn(300)], argmax=True)
-    with pytest.raises(RuntimeError, match=r"argmax=True needs 1 to 256 classes .* got 300"):
-        call_decode(args)
+@pytest.mark.parametrize("classes", [0, 300])
+def test_triplane_decode_argmax_needs_1_to_256_classes(device, classes):
+    planes, weights, biases = make_inputs(2, 4, (5, 6, 3), [8], 1, classes, device=device)
+    with pytest.raises(RuntimeError, match=rf"argmax=True needs 1 to 256 classes .* got {classes}"):
+        triplane_decode(*planes, weights, biases, grid=(4, 4, 2), pe_freqs=1, argmax=True)
 
 
 def test_mixed_devices_name_the_argument():

@@ -2,31 +2,57 @@
 
 Each has a pure-PyTorch twin with the same signature in :mod:`t3fast.ops.reference`. The
 compiled kernels are also reachable as ``torch.ops.t3fast.<name>`` once this module is
-imported.
+imported. Where the extension is not built (or was built against another torch), the ops run
+through the references instead, with the same argument checks, and importing this module warns
+once; :func:`build_info` says why.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
 from torch import Tensor
 
-from t3fast.ops import reference
+from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
-from t3fast.ops._registration import _C, ops
+from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
 __all__ = ["axis_pool", "build_info", "delta_fuse", "reference", "triplane_decode"]
+
+if _C is not None:
+    from t3fast.ops._registration import ops
+else:
+    ops = None
+    warnings.warn(
+        f"t3fast's compiled operators are not available ({UNAVAILABLE_REASON}); the ops run through "
+        f"their pure-PyTorch references, which are slower and take more memory; {BUILD_HINT}.",
+        RuntimeWarning,
+        stacklevel=1,  # this module, whose import is what falls back
+    )
 
 
 def build_info() -> dict[str, Any]:
     """How the compiled extension was built.
 
     Returns:
-        ``{"cpu": True, "cuda": bool, "cuda_version": int (major*1000 + minor*10, -1 without
-        CUDA), "torch_version": str, "openmp": bool}``.
+        ``{"compiled": True, "cpu": True, "cuda": bool, "cuda_version": int (major*1000 +
+        minor*10, -1 without CUDA), "torch_version": str, "openmp": bool}``; without a usable
+        extension ``{"compiled": False, "reason": str (why, and how to build it), "cpu": False,
+        "cuda": False, "cuda_version": -1, "torch_version": None, "openmp": False}``.
     """
-    return dict(_C.build_info())
+    if _C is None:
+        return {
+            "compiled": False,
+            "reason": f"{UNAVAILABLE_REASON}; {BUILD_HINT}",
+            "cpu": False,
+            "cuda": False,
+            "cuda_version": -1,
+            "torch_version": None,
+            "openmp": False,
+        }
+    return {"compiled": True, **_C.build_info()}
 
 
 def triplane_decode(
@@ -61,7 +87,7 @@ def triplane_decode(
         points: ``[B, N, 3]`` query coordinates (x, y, z); they receive no gradient.
         pe_freqs: number of encoding frequencies F.
         argmax: return the first-maximum class as uint8 instead of logits (no logits
-            tensor is ever allocated; needs at most 256 classes). Exactly what
+            tensor is ever allocated; needs 1 to 256 classes). Exactly what
             ``torch.argmax`` returns on the logits: NaN counts as the maximum, so a row
             with a NaN logit gets its first NaN's class.
 
@@ -73,15 +99,21 @@ def triplane_decode(
     the planes, weights and biases (not the points). float32/float64 on CPU, also
     float16/bfloat16 on CUDA.
     """
-    weights = list(weights)
+    weights, biases = list(weights), list(biases)
     if grid is not None and weights:
         grid = checked_grid(grid, xy, weights[-1].shape[0], argmax)
+    if ops is None:
+        _checks.check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax)
+        # as the kernels: the points receive no gradient
+        points = None if points is None else points.detach()
+        return reference.triplane_decode(xy, xz, yz, weights, biases, grid=grid, points=points,
+                                         pe_freqs=pe_freqs, argmax=argmax)
     return ops.triplane_decode.default(
         xy,
         xz,
         yz,
         weights,
-        list(biases),
+        biases,
         points,
         grid,
         int(pe_freqs),
@@ -99,6 +131,9 @@ def axis_pool(volume: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         ``xy [B, C, X, Y]`` (mean over Z), ``xz [B, C, X, Z]`` (mean over Y),
         ``yz [B, C, Y, Z]`` (mean over X).
     """
+    if ops is None:
+        _checks.check_axis_pool(volume)
+        return reference.axis_pool(volume)
     return ops.axis_pool.default(volume)
 
 
@@ -114,4 +149,7 @@ def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None 
     Returns:
         ``[B, C, H, W]``.
     """
+    if ops is None:
+        _checks.check_delta_fuse(delta, prev, weight, bias)
+        return reference.delta_fuse(delta, prev, weight, bias)
     return ops.delta_fuse.default(delta, prev, weight, bias)

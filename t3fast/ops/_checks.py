@@ -1,5 +1,11 @@
-"""Argument checks the C++ glue cannot make: Python integers too large for int64, and outputs
-too large for the device, refused with a message instead of a cast error or an allocator failure."""
+"""Argument checks made in Python.
+
+* Those the C++ glue cannot make: Python integers too large for int64, and outputs too large
+  for the device, refused with a message instead of a cast error or an allocator failure.
+* Without the compiled extension, the C++ glue's own checks (csrc/checks.h,
+  csrc/triplane_args.cpp), with the same messages, so that the references the ops then run
+  through fail as clearly as the kernels would.
+"""
 
 from __future__ import annotations
 
@@ -57,3 +63,134 @@ def checked_grid(grid: Sequence[int], xy: torch.Tensor, classes: int, argmax: bo
             f"{what}, more than the {_human(limit)} of memory on {xy.device}"
         )
     return sizes
+
+
+# ---------------------------------------------------------------- the C++ glue's checks
+def _require(ok: bool, op: str, message: str) -> None:
+    if not ok:
+        raise RuntimeError(f"t3fast.{op}: {message}")
+
+
+def _dtype_name(dtype: torch.dtype) -> str:
+    """The name the C++ messages give a dtype: torch.float64 -> "Double"."""
+    return torch.empty(0, dtype=dtype).type().removeprefix("torch.").removesuffix("Tensor")
+
+
+def _check_dim(t: torch.Tensor, op: str, name: str, dim: int, layout: str) -> None:
+    _require(t.dim() == dim, op, f"{name} must have {dim} dims {layout}, got {t.dim()} dims {list(t.shape)}")
+
+
+def _check_size(t: torch.Tensor, op: str, name: str, d: int, expected: int, what: str) -> None:
+    _require(t.shape[d] == expected, op,
+             f"{name}.shape[{d}] ({what}) must be {expected}, got {t.shape[d]} (shape {list(t.shape)})")
+
+
+def _check_device(t: torch.Tensor, ref: torch.Tensor, op: str, name: str, ref_name: str) -> None:
+    _require(t.device == ref.device, op,
+             f"{name} must be on the same device as {ref_name} ({ref.device}), got {t.device}")
+
+
+def _check_dtype(t: torch.Tensor, ref: torch.Tensor, op: str, name: str, ref_name: str) -> None:
+    _require(t.dtype == ref.dtype, op, f"{name} must have the dtype of {ref_name} "
+             f"({_dtype_name(ref.dtype)}), got {_dtype_name(t.dtype)}")
+
+
+def _check_like(t: torch.Tensor, ref: torch.Tensor, op: str, name: str, ref_name: str) -> None:
+    _check_device(t, ref, op, name, ref_name)
+    _check_dtype(t, ref, op, name, ref_name)
+
+
+def _check_float(t: torch.Tensor, op: str, name: str) -> None:
+    """The floating dtypes the kernels take: float32/float64, on CUDA also float16/bfloat16."""
+    if t.is_cuda:
+        _require(t.dtype in (torch.float32, torch.float64, torch.float16, torch.bfloat16), op,
+                 f"{name} must be float32, float64, float16 or bfloat16 on CUDA, got {_dtype_name(t.dtype)}")
+    else:
+        _require(t.dtype in (torch.float32, torch.float64), op,
+                 f"{name} must be float32 or float64 on CPU, got {_dtype_name(t.dtype)}")
+
+
+def check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs: int, argmax: bool) -> None:
+    """triplane_decode's arguments, as csrc/triplane_args.cpp checks them."""
+    op = "triplane_decode"
+    _check_dim(xy, op, "xy", 4, "[B, C, X', Y']")
+    _check_dim(xz, op, "xz", 4, "[B, C, X', Z']")
+    _check_dim(yz, op, "yz", 4, "[B, C, Y', Z']")
+    _check_float(xy, op, "xy")
+    _check_like(xz, xy, op, "xz", "xy")
+    _check_like(yz, xy, op, "yz", "xy")
+    _check_size(xz, op, "xz", 0, xy.shape[0], "batch, as xy")
+    _check_size(yz, op, "yz", 0, xy.shape[0], "batch, as xy")
+    _check_size(xz, op, "xz", 1, xy.shape[1], "channels, as xy")
+    _check_size(yz, op, "yz", 1, xy.shape[1], "channels, as xy")
+    _check_size(xz, op, "xz", 2, xy.shape[2], "X', as xy.shape[2]")
+    _check_size(yz, op, "yz", 2, xy.shape[3], "Y', as xy.shape[3]")
+    _check_size(yz, op, "yz", 3, xz.shape[3], "Z', as xz.shape[3]")
+    _require(xy.shape[1] > 0, op, f"planes must have at least one channel, got xy {list(xy.shape)}")
+    _require(all(p.shape[2] > 0 and p.shape[3] > 0 for p in (xy, xz, yz)), op,
+             f"planes must have non-empty spatial dims, got xy {list(xy.shape)}, xz {list(xz.shape)}, "
+             f"yz {list(yz.shape)}")
+
+    _require((points is None) != (grid is None), op, "exactly one of grid and points must be given, got "
+             + ("both" if points is not None else "neither"))
+    _require(0 <= pe_freqs <= 30, op, f"pe_freqs must be in [0, 30], got {pe_freqs}")
+    if points is not None:
+        _check_dim(points, op, "points", 3, "[B, N, 3]")
+        _check_size(points, op, "points", 0, xy.shape[0], "batch, as xy")
+        _check_size(points, op, "points", 2, 3, "coordinates (x, y, z)")
+        _check_like(points, xy, op, "points", "xy")
+    else:
+        _require(len(grid) == 3, op, f"grid must be (X, Y, Z), got {len(grid)} values {list(grid)}")
+        _require(all(n >= 0 for n in grid), op, f"grid sizes must be >= 0, got {list(grid)}")
+
+    _require(len(weights) > 0, op, "weights must hold at least one layer, got none")
+    _require(len(weights) == len(biases), op, "weights and biases must have the same number of layers, "
+             f"got {len(weights)} weights and {len(biases)} biases")
+    width = xy.shape[1] + 6 * pe_freqs
+    for i, (w, b) in enumerate(zip(weights, biases)):
+        _check_like(w, xy, op, f"weights[{i}]", "xy")
+        _check_like(b, xy, op, f"biases[{i}]", "xy")
+        _check_dim(w, op, f"weights[{i}]", 2, "[out, in]")
+        _check_dim(b, op, f"biases[{i}]", 1, "[out]")
+        source = "C + 6 * pe_freqs" if i == 0 else "the previous layer's out features"
+        _require(w.shape[1] == width, op, f"weights[{i}].shape[1] (in features) must be {width} ({source}), "
+                 f"got {w.shape[1]} (shape {list(w.shape)})")
+        _require(b.shape[0] == w.shape[0], op,
+                 f"biases[{i}].shape[0] must be {w.shape[0]} (weights[{i}].shape[0]), got {b.shape[0]}")
+        width = w.shape[0]
+    _require(not argmax or 1 <= width <= 256, op,
+             f"argmax=True needs 1 to 256 classes (uint8 labels), got {width}")
+
+
+def check_axis_pool(volume: torch.Tensor) -> None:
+    """axis_pool's argument, as csrc/checks.h checks it."""
+    op = "axis_pool"
+    _check_dim(volume, op, "volume", 5, "[B, C, X, Y, Z]")
+    _check_float(volume, op, "volume")
+    _require(all(n > 0 for n in volume.shape[2:]), op,
+             f"volume must have non-empty X, Y, Z, got {list(volume.shape)}")
+
+
+def check_delta_fuse(delta: torch.Tensor, prev: torch.Tensor, weight: torch.Tensor,
+                     bias: torch.Tensor | None) -> None:
+    """delta_fuse's arguments, as csrc/checks.h checks them."""
+    op = "delta_fuse"
+    _check_dim(delta, op, "delta", 4, "[B, C, H, W]")
+    _check_dim(prev, op, "prev", 4, "[B, C_in, H, W]")
+    _check_dim(weight, op, "weight", 2, "[C, C_in]")
+    _check_float(delta, op, "delta")
+    # devices first: the compiled op reports a mixed-device call from its fake kernel, which
+    # compares prev with delta; its C++ checks then compare weight's dtype with prev's first
+    _check_device(prev, delta, op, "prev", "delta")
+    _check_device(weight, prev, op, "weight", "prev")
+    _check_dtype(weight, prev, op, "weight", "prev")
+    _check_dtype(prev, delta, op, "prev", "delta")
+    _check_size(weight, op, "weight", 1, prev.shape[1], "C_in, as prev.shape[1]")
+    _check_size(prev, op, "prev", 0, delta.shape[0], "batch, as delta")
+    _check_size(prev, op, "prev", 2, delta.shape[2], "H, as delta")
+    _check_size(prev, op, "prev", 3, delta.shape[3], "W, as delta")
+    _check_size(weight, op, "weight", 0, delta.shape[1], "C, as delta.shape[1]")
+    if bias is not None:
+        _check_dim(bias, op, "bias", 1, "[C]")
+        _check_like(bias, delta, op, "bias", "delta")
+        _check_size(bias, op, "bias", 0, delta.shape[1], "C, as delta.shape[1]")

@@ -1,31 +1,12 @@
-"""Loads the compiled kernels and teaches torch about them: fake (meta) kernels so that
-``torch.compile`` can trace the ops, and autograd formulas whose backward passes are
-themselves registered ops."""
+"""Teaches torch about the compiled kernels: fake (meta) kernels so that ``torch.compile`` can
+trace the ops, and autograd formulas whose backward passes are themselves registered ops.
+
+Imported only once :mod:`t3fast.ops._extension` has loaded the extension, which defines the
+ops' schemas."""
 
 from __future__ import annotations
 
 import torch
-
-try:
-    from t3fast import _C
-except ImportError as exc:  # pragma: no cover - depends on the installation
-    raise ImportError(
-        "t3fast's compiled operators are not built. Install the package with "
-        "`pip install --no-build-isolation -e .` (needs a C++ compiler and ninja)."
-    ) from exc
-
-
-def _check_torch_version() -> None:
-    built = _C.build_info()["torch_version"]
-    running = torch.__version__.split("+")[0]
-    if built.split(".")[:2] != running.split(".")[:2]:
-        raise ImportError(
-            f"t3fast was compiled against torch {built} but torch {running} is running; "
-            "rebuild it with `pip install --no-build-isolation -e .`"
-        )
-
-
-_check_torch_version()
 
 ops = torch.ops.t3fast
 

@@ -53,9 +53,8 @@ def autoencoder_size(name: str) -> AutoencoderConfig:
     cfg = copy.deepcopy(AUTOENCODER_SIZES[base])
     if not variant:
         return cfg
-    x, y, z = cfg.plane_shape
-    size = cfg.channels * (x * y + x * z + y * z)
-    return replace(cfg, latent="bev", channels=-(-size // (x * y)))
+    x, y, _ = cfg.plane_shape
+    return replace(cfg, latent="bev", channels=-(-cfg.latent_size // (x * y)))
 
 
 def world_model_size(name: str) -> WorldModelConfig:

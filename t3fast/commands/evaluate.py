@@ -168,12 +168,6 @@ def _eval_ae(args: argparse.Namespace) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         summary.update(step=state["step"], split=args.split, frames=len(indices), latent=cfg.model.latent,
-                       latent_size=_latent_size(model))
+                       latent_size=cfg.model.latent_size)
         args.out.write_text(json.dumps(summary, indent=2))
     return 0
-
-
-def _latent_size(model) -> int:
-    x, y, z = model.config.plane_shape
-    c = model.config.channels
-    return c * x * y if model.config.latent == "bev" else c * (x * y + x * z + y * z)

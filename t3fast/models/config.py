@@ -41,6 +41,12 @@ class AutoencoderConfig:
         x, y, z = self.grid
         return (x + 1) // 2, (y + 1) // 2, z
 
+    @property
+    def latent_size(self) -> int:
+        """Numbers in one frame's latent: C X'Y' (BEV) or C (X'Y' + X'Z' + Y'Z') (triplane)."""
+        x, y, z = self.plane_shape
+        return self.channels * (x * y if self.latent == "bev" else x * y + x * z + y * z)
+
 
 @dataclass
 class WorldModelConfig:

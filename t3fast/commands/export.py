@@ -21,13 +21,12 @@ def add_export_command(sub: argparse._SubParsersAction) -> None:
 
 def _export(args: argparse.Namespace) -> int:
     from t3fast.errors import UsageError
-    from t3fast.io.checkpoint import AUTOENCODER, WORLD_MODEL, export_weights, read_checkpoint
+    from t3fast.io.checkpoint import export_weights
 
     if args.out.is_dir():
         raise UsageError(f"{args.out} is a folder; it names the file to write")
     if args.out.resolve() == args.ckpt.resolve():
         raise UsageError(f"{args.out}: writing over the checkpoint being exported would lose its training state")
-    read_checkpoint(args.ckpt, (AUTOENCODER, WORLD_MODEL))  # says what the file is when it is neither
     size = export_weights(args.ckpt, args.out, DTYPES[args.dtype])
     print(f"wrote {args.out} ({size / 2**20:.1f} MiB, {args.dtype})")
     return 0

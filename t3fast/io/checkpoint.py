@@ -91,8 +91,9 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
 def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16) -> int:
     """Keep only what inference needs from a training checkpoint (model weights in ``dtype``,
     config, step), e.g. to ship it; returns the file size in bytes. Loading casts back to the
-    model's dtype."""
-    state = load_checkpoint(src)
+    model's dtype. ``src`` must be a stage-1 or stage-2 checkpoint (:func:`read_checkpoint`
+    says what it is otherwise), read once."""
+    state = read_checkpoint(src, (AUTOENCODER, WORLD_MODEL))
     weights = {k: v.to(dtype) if v.is_floating_point() else v for k, v in state["model"].items()}
     save_checkpoint({"model": weights, "config": state.get("config", {}), "step": state.get("step")}, dst)
     return Path(dst).stat().st_size

@@ -120,11 +120,18 @@ def names(stage: str) -> list[str]:
     return [name[len(stage) + 1:] for name in PRESETS if name.startswith(stage + "-")]
 
 
-def preset(name: str, stage: str | None = None) -> Stage1Config | Stage2Config:
-    """A fresh config of the run ``name`` (``"wm-small"``); with ``stage`` the prefix may be left
-    out (``preset("small", "wm")``), the form ``--config`` takes."""
+def run_name(name: str, stage: str | None = None) -> str | None:
+    """The preset ``name`` stands for: itself (``"wm-small"``) or, with ``stage``, also the name
+    without the prefix (``run_name("small", "wm") == "wm-small"``, the form ``--config``
+    takes); None when there is no such preset."""
     full = name if stage is None or name.startswith(stage + "-") else f"{stage}-{name}"
-    if full not in PRESETS or (stage is not None and not full.startswith(stage + "-")):
+    return full if full in PRESETS else None
+
+
+def preset(name: str, stage: str | None = None) -> Stage1Config | Stage2Config:
+    """A fresh config of the run ``name`` (see :func:`run_name`)."""
+    full = run_name(name, stage)
+    if full is None:
         known = names(stage) if stage else list(PRESETS)
         what = f"{STAGES[stage]} preset" if stage else "preset"
         raise ValueError(f"unknown {what} {name!r}; expected one of {', '.join(known)}")

@@ -37,10 +37,10 @@ def _config(cls, stage: str, name: str, overrides: list[str]):
     overrides; the run's out_dir is checked before anything is built."""
     from t3fast.errors import ConfigError
     from t3fast.io.config import config_to_dict, load_config
-    from t3fast.presets import PRESETS, names, preset
+    from t3fast.presets import names, preset, run_name
     from t3fast.training.run_dir import check_out_dir
 
-    if name in names(stage) or (name in PRESETS and name.startswith(stage + "-")):
+    if run_name(name, stage) is not None:
         base = preset(name, stage)
     elif Path(name).is_file():
         base = load_config(cls, name)

@@ -44,32 +44,24 @@ def checkpoint_paths(folder: Path) -> list[Path]:
     return paths
 
 
-@torch.no_grad()
-def save_pictures(model, dataset, indices: list[int], out: Path, device: torch.device) -> list[Path]:
+def save_pictures(model, dataset, indices: list[int], out: Path) -> list[Path]:
     """PNG + GIF and a 3D page (HTML) of the forecasts of ``indices``."""
-    from t3fast.data.sample import PRESENT, collate_samples
+    from t3fast.commands.evaluate import forecast_window
+    from t3fast.data.sample import NUM_FUTURE
     from t3fast.viz.bev import save_forecast_pictures
     from t3fast.viz.viewer import write_window_viewer
 
     written = []
     for n, i in enumerate(indices):
         sample = dataset[i]
-        batch = collate_samples([sample]).to(device)
-        forecast = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])
+        labels, plan = forecast_window(model, sample)
         name = f"{sample.scene}-t{sample.start:02d}"
-        written += save_forecast_pictures(
-            out / name, sample.past_occ.numpy(), forecast.labels[0].cpu().numpy(),
-            sample.future_occ.numpy(), forecast.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),
-        )
-        written.append(write_window_viewer(out / f"{name}.html", sample, forecast.labels[0].cpu().numpy(),
-                                           forecast.trajectory[0].cpu().numpy(), f"T3Former forecast, {name}"))
+        past, truth, true_plan = sample.past_occ.numpy(), sample.future_occ.numpy(), sample.trajectory.numpy()
+        written += save_forecast_pictures(out / name, past, labels, truth, plan, true_plan)
+        written.append(write_window_viewer(out / f"{name}.html", sample, labels, plan, f"T3Former forecast, {name}"))
         if n == 0 and model.ego_aligned:  # steered: the same window if the ego stopped now
-            stop = torch.zeros_like(forecast.actions)
-            steered = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1], future_actions=stop)
-            written += save_forecast_pictures(
-                out / f"{name}-steered-stop", sample.past_occ.numpy(), steered.labels[0].cpu().numpy(),
-                sample.future_occ.numpy(), steered.trajectory[0].cpu().numpy(), sample.trajectory.numpy(),
-            )
+            steered, stopped = forecast_window(model, sample, future_actions=torch.zeros(1, NUM_FUTURE, 2))
+            written += save_forecast_pictures(out / f"{name}-steered-stop", past, steered, truth, stopped, true_plan)
     return written
 
 
@@ -90,7 +82,7 @@ def _demo(args: argparse.Namespace) -> int:
     paths = list(write_report(results, args.out, title))
     per_scene = len(dataset) // args.scenes
     picks = [k * per_scene for k in range(min(args.pictures, args.scenes))]
-    paths += save_pictures(models["t3former"], dataset, picks, args.out / "pictures", device)
+    paths += save_pictures(models["t3former"], dataset, picks, args.out / "pictures")
     views = [p for p in paths if p.suffix == ".html"]
     pictures = [p for p in paths if p.suffix in (".png", ".gif")]
     index = write_index(args.out, results, title, pictures, views)

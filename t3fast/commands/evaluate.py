@@ -63,6 +63,18 @@ def load_models(paths: list[Path], device: torch.device) -> dict:
     return models
 
 
+@torch.no_grad()
+def forecast_window(model, sample, future_actions: torch.Tensor | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The model's forecast of one window (a ``DrivingSample``) from its past frames and poses:
+    labels uint8 ``[6, 200, 200, 16]`` and planned positions ``[6, 2]`` (present frame), on
+    the CPU. ``future_actions`` ``[1, 6, 2]``: steered along these displacements instead."""
+    from t3fast.data.sample import PRESENT, collate_samples
+
+    batch = collate_samples([sample]).to(next(model.parameters()).device)
+    out = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1], future_actions=future_actions)
+    return out.labels[0].cpu().numpy(), out.trajectory[0].cpu().numpy()
+
+
 def _eval(args: argparse.Namespace) -> int:
     from t3fast.data.synthetic import SyntheticDriving
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
@@ -100,12 +112,11 @@ def _trajectory_json(plan: np.ndarray, where: str) -> str:
     return json.dumps({"planned": plan.tolist(), "seconds": seconds}, allow_nan=False)
 
 
-@torch.no_grad()
 def _forecast(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from t3fast.data.occ3d import Occ3DNuScenes
-    from t3fast.data.sample import PRESENT, collate_samples
+    from t3fast.data.sample import PRESENT
     from t3fast.pretrained import load_world_model
     from t3fast.viz.bev import save_forecast_pictures
     from t3fast.viz.viewer import write_window_viewer
@@ -122,13 +133,10 @@ def _forecast(args: argparse.Namespace) -> int:
     model = load_world_model(args.ckpt, device)
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):
         sample = dataset[i]
-        batch = collate_samples([sample]).to(device)
-        out = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])  # past poses: ego motion
+        labels, plan = forecast_window(model, sample)
         token = dataset.infos[sample.scene][sample.start + PRESENT]["token"]
         folder = inside(out_root, check_name(sample.scene, "scene name"), check_name(token, "token"))
-        plan = out.trajectory[0].cpu().numpy()
         trajectory = _trajectory_json(plan, f"scene {sample.scene!r} token {token!r}")  # before writing anything
-        labels = out.labels[0].cpu().numpy()
         for k, frame in enumerate(labels):
             (folder / f"future_{k + 1}").mkdir(parents=True, exist_ok=True)
             np.savez_compressed(folder / f"future_{k + 1}" / "labels.npz", semantics=frame)

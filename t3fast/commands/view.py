@@ -52,8 +52,6 @@ def _window(args: argparse.Namespace):
 
 
 def _view(args: argparse.Namespace) -> int:
-    import torch
-
     from t3fast.viz.viewer import write_window_viewer
 
     if args.out.is_dir():
@@ -62,16 +60,11 @@ def _view(args: argparse.Namespace) -> int:
     title = f"{title}, frames {sample.start}-{sample.start + WINDOW - 1}"
     predicted = plan = None
     if args.ckpt is not None:
-        from t3fast.data.sample import PRESENT, collate_samples
+        from t3fast.commands.evaluate import forecast_window
         from t3fast.device import default_device
         from t3fast.pretrained import load_world_model
 
-        device = default_device()
-        model = load_world_model(args.ckpt, device)
-        batch = collate_samples([sample]).to(device)
-        with torch.no_grad():
-            out = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])
-        predicted, plan = out.labels[0].cpu().numpy(), out.trajectory[0].cpu().numpy()
+        predicted, plan = forecast_window(load_world_model(args.ckpt, default_device()), sample)
         title = f"{args.ckpt} forecast, {title}"
     path = write_window_viewer(args.out, sample, predicted, plan, title)
     print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB); open it in a browser")

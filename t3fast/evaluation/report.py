@@ -65,8 +65,9 @@ def evaluate_methods(
         methods.update(BASELINES)
     results = evaluate_many(methods, dataset, indices, device=device, use_mask=use_mask, progress=progress,
                             desc="windows")
+    timed = collate_samples([dataset[indices[0]]])  # every model is timed on the same window
     for name, record in results.items():
-        speed = measure_speed(models[name], collate_samples([dataset[indices[0]]])) if name in models else {}
+        speed = measure_speed(models[name], timed) if name in models else {}
         record.update(speed or dict(fps=None, peak_memory_mb=None, params=None))
     return results
 

@@ -1,6 +1,10 @@
 """Teaches torch about the compiled kernels: fake (meta) kernels so that ``torch.compile`` can
 trace the ops, and autograd formulas whose backward passes are themselves registered ops.
 
+Higher-order gradients: ``axis_pool`` and ``delta_fuse`` are (bi)linear, so their backward ops
+are differentiable too (to any order). ``triplane_decode``'s backward op is not: differentiating
+through it raises a ``RuntimeError`` pointing at the reference, never a silent zero.
+
 Imported only once :mod:`t3fast.ops._extension` has loaded the extension, which defines the
 ops' schemas."""
 
@@ -80,6 +84,26 @@ torch.library.register_autograd(
     "t3fast::triplane_decode", _triplane_decode_backward, setup_context=_triplane_decode_setup
 )
 
+DOUBLE_BACKWARD_UNSUPPORTED = (
+    "t3fast.triplane_decode: double backward is not supported; use "
+    "t3fast.ops.reference.triplane_decode for higher-order gradients"
+)
+
+
+def _no_setup(ctx, inputs, output):
+    pass
+
+
+def _triplane_decode_double_backward(ctx, *grads):
+    # Reached only when a gradient of the first backward is itself differentiated (e.g.
+    # create_graph=True and a gradient penalty): torch's fallback would return zeros.
+    raise RuntimeError(DOUBLE_BACKWARD_UNSUPPORTED)
+
+
+torch.library.register_autograd(
+    "t3fast::triplane_decode_backward", _triplane_decode_double_backward, setup_context=_no_setup
+)
+
 
 # ---------------------------------------------------------------- axis_pool
 @torch.library.register_fake("t3fast::axis_pool")
@@ -107,6 +131,16 @@ def _axis_pool_backward(ctx, grad_xy, grad_xz, grad_yz):
 
 torch.library.register_autograd(
     "t3fast::axis_pool", _axis_pool_backward, setup_context=_axis_pool_setup
+)
+
+
+def _axis_pool_backward_backward(ctx, grad_volume):
+    # the backward is the adjoint of the (linear) forward, so its own adjoint is the forward
+    return ops.axis_pool.default(grad_volume)
+
+
+torch.library.register_autograd(
+    "t3fast::axis_pool_backward", _axis_pool_backward_backward, setup_context=_no_setup
 )
 
 
@@ -141,4 +175,31 @@ def _delta_fuse_backward(ctx, grad):
 
 torch.library.register_autograd(
     "t3fast::delta_fuse", _delta_fuse_backward, setup_context=_delta_fuse_setup
+)
+
+
+def _delta_fuse_backward_setup(ctx, inputs, output):
+    ctx.save_for_backward(*inputs)
+
+
+def _delta_fuse_backward_backward(ctx, gg_prev, gg_weight, gg_bias):
+    """Gradients of (grad_prev = W^T g, grad_weight = sum g prev^T, grad_bias = sum g), which are
+    bilinear in (g, prev, W), with respect to g, prev and W; in plain torch ops, so that every
+    further order is differentiable as well."""
+    grad, prev, weight = ctx.saved_tensors
+    grad_grad = torch.zeros_like(grad)
+    grad_prev = grad_weight = None
+    if gg_prev is not None:
+        grad_grad = grad_grad + torch.einsum("oc,bchw->bohw", weight, gg_prev)
+        grad_weight = torch.einsum("bohw,bchw->oc", grad, gg_prev)
+    if gg_weight is not None:
+        grad_grad = grad_grad + torch.einsum("oc,bchw->bohw", gg_weight, prev)
+        grad_prev = torch.einsum("oc,bohw->bchw", gg_weight, grad)
+    if gg_bias is not None:
+        grad_grad = grad_grad + gg_bias[None, :, None, None]
+    return grad_grad, grad_prev, grad_weight
+
+
+torch.library.register_autograd(
+    "t3fast::delta_fuse_backward", _delta_fuse_backward_backward, setup_context=_delta_fuse_backward_setup
 )

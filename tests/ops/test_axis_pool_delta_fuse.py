@@ -76,3 +76,30 @@ def test_delta_fuse_gradcheck_float64():
     args = [rand(2, 3, 4, 5, dtype=torch.float64, seed=1), rand(2, 2, 4, 5, dtype=torch.float64,
             seed=2), rand(3, 2, dtype=torch.float64, seed=3), rand(3, dtype=torch.float64, seed=4)]
     assert torch.autograd.gradcheck(delta_fuse, [a.requires_grad_() for a in args])
+
+
+def test_axis_pool_double_backward_float64():
+    """Second-order gradients are exact, not the zero of an op without an autograd formula."""
+    volume = rand(2, 2, 3, 4, 2, dtype=torch.float64).requires_grad_()
+    assert torch.autograd.gradgradcheck(axis_pool, (volume,))
+    # a gradient penalty through the pool: d/dv sum(grad_v(sum(pool(v)^2))^2), as the reference
+    got, want = [], []
+    for f, out in ((axis_pool, got), (reference.axis_pool, want)):
+        (g,) = torch.autograd.grad(sum((p**2).sum() for p in f(volume)), volume, create_graph=True)
+        out.append(torch.autograd.grad((g**2).sum(), volume)[0])
+    torch.testing.assert_close(got[0], want[0])
+    assert got[0].abs().sum() > 0
+
+
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_delta_fuse_double_backward_float64(with_bias):
+    args = [rand(2, 3, 4, 5, dtype=torch.float64, seed=1), rand(2, 2, 4, 5, dtype=torch.float64, seed=2),
+            rand(3, 2, dtype=torch.float64, seed=3), rand(3, dtype=torch.float64, seed=4) if with_bias else None]
+    inputs = [a.requires_grad_() for a in args if a is not None]
+    assert torch.autograd.gradgradcheck(lambda *t: delta_fuse(*t, *([None] * (4 - len(t)))), inputs)
+    got, want = [], []
+    for f, out in ((delta_fuse, got), (reference.delta_fuse, want)):
+        grads = torch.autograd.grad((f(*args) ** 2).sum(), inputs, create_graph=True)
+        out.extend(torch.autograd.grad(sum((g**2).sum() for g in grads), inputs))
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w)

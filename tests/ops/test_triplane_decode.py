@@ -163,3 +163,21 @@ def test_runs_on_a_chunk_boundary():
     for n in (1024, 1025, 2048):
         part = triplane_decode(*planes, weights, biases, points=points[:, :n], pe_freqs=2)
         torch.testing.assert_close(part, full[:, :n], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("mode", ["grid", "points"])
+def test_double_backward_raises_instead_of_a_zero_gradient(mode):
+    """The fused op has no second-order formula: differentiating its gradient is an error that
+    points at the reference (torch's fallback would return a zero gradient with a warning)."""
+    planes, weights, biases = make_inputs(1, 4, (3, 5, 2), [8], 1, 6, dtype=torch.float64)
+    planes = [p.requires_grad_() for p in planes]
+    query = {"grid": (3, 2, 4)} if mode == "grid" else {"points": random_points(1, 9, dtype=torch.float64)}
+    (g,) = torch.autograd.grad((triplane_decode(*planes, weights, biases, pe_freqs=1, **query) ** 2).sum(),
+                               planes[0], create_graph=True)  # first order with a graph still works
+    with pytest.raises(RuntimeError, match="t3fast.triplane_decode: double backward is not supported; "
+                                           "use t3fast.ops.reference.triplane_decode"):
+        torch.autograd.grad((g**2).sum(), planes[0])
+    # the reference has the second-order gradient the fused op refuses to fake
+    (g,) = torch.autograd.grad((reference.triplane_decode(*planes, weights, biases, pe_freqs=1, **query) ** 2)
+                               .sum(), planes[0], create_graph=True)
+    assert torch.autograd.grad((g**2).sum(), planes[0])[0].abs().sum() > 0

@@ -63,6 +63,9 @@ IGNORE = 255
 #: classes of the agents that carry boxes (vehicles and humans), nuScenes detection names
 AGENT_CLASSES: tuple[int, ...] = (BICYCLE, BUS, CAR, CONSTRUCTION_VEHICLE, MOTORCYCLE, PEDESTRIAN, TRAILER, TRUCK)
 
+#: the classes a world model must move, averaged by the moving-class mIoU (the agent classes)
+MOVING_CLASSES: tuple[int, ...] = AGENT_CLASSES
+
 #: the flat ground classes (Occ3D's z index 0, kerbs one voxel up)
 FLAT_GROUND_CLASSES: tuple[int, ...] = (DRIVEABLE_SURFACE, OTHER_FLAT, SIDEWALK, TERRAIN)
 

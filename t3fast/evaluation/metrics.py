@@ -23,6 +23,7 @@ beyond 2^24 voxels (OccWorld accumulates float32 counts).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Literal
 
 import torch
@@ -166,16 +167,25 @@ class OccupancyMetrics:
         """Semantic class ids that have no scored ground-truth voxel."""
         return self._semantic[~self._has_target()].tolist()
 
-    def miou(self, absent: Literal["one", "skip"] = "one") -> float:
+    def miou(self, absent: Literal["one", "skip"] = "one", classes: Sequence[int] | None = None) -> float:
         """Mean IoU over the semantic classes, as a fraction.
 
         Args:
             absent: how a class with no ground-truth voxel counts. ``"one"`` (default) is
                 OccWorld's convention: IoU 1, even if it was predicted. ``"skip"`` leaves it out
                 of the mean (NaN when no class has ground truth).
+            classes: average over these semantic class ids only (e.g. ``MOVING_CLASSES`` for
+                the moving-class mIoU); the IoUs and the ``absent`` rule are the same.
         """
         iou = self.per_class_iou()
         present = self._has_target()
+        if classes is not None:
+            semantic = self._semantic.tolist()
+            if not classes or any(c not in semantic for c in classes):
+                raise ValueError(f"classes must be a non-empty subset of the semantic classes {semantic}, "
+                                 f"got {list(classes)}")
+            pick = torch.tensor([semantic.index(c) for c in classes], dtype=torch.long)
+            iou, present = iou[pick], present[pick]
         if absent == "one":
             return float(torch.where(present, iou, torch.ones_like(iou)).mean())
         if absent == "skip":

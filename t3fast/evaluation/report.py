@@ -17,15 +17,18 @@ from t3fast.evaluation.world_model import (
     evaluate_many,
     measure_speed,
     t3former_method,
+    track_const_vel_method,
+    track_gt_ego_method,
     warp_const_vel_method,
     warp_gt_ego_method,
 )
 from t3fast.models.world_model import T3Former
 
-# warp_gt_ego reads the true future poses: a reference for pure geometry, not a forecaster
+# the *_gt_ego rows read the true future poses: references for pure geometry, not forecasters
 BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velocity_method,
              "constant_turn_rate": constant_turn_rate_method, "warp_const_vel": warp_const_vel_method,
-             "warp_gt_ego": warp_gt_ego_method}
+             "warp_gt_ego": warp_gt_ego_method, "track_const_vel": track_const_vel_method,
+             "track_gt_ego": track_gt_ego_method}
 
 
 def method_name(model: T3Former) -> str:
@@ -77,14 +80,17 @@ def _fmt(value, digits: int = 2) -> str:
 
 
 def metrics_markdown(results: dict[str, dict], title: str = "") -> str:
-    """Two markdown tables: occupancy forecasting (mIoU, IoU per horizon) and planning/speed."""
+    """Two markdown tables: occupancy forecasting (mIoU, IoU and moving-class mIoU per horizon)
+    and planning/speed."""
     horizons = ("0s", "1s", "2s", "3s", "avg")
     lines = [f"{title}\n" if title else ""]
     lines.append("| method | " + " | ".join(f"mIoU {h}" for h in horizons) + " | "
-                 + " | ".join(f"IoU {h}" for h in horizons) + " |")
-    lines.append("|---|" + "---:|" * (2 * len(horizons)))
+                 + " | ".join(f"IoU {h}" for h in horizons) + " | moving mIoU 1s / 2s / 3s | moving mIoU avg |")
+    lines.append("|---|" + "---:|" * (2 * len(horizons) + 2))
     for name, r in results.items():
+        moving = r.get("miou_moving") or {}  # records written before the column existed lack it
         cells = [_fmt(r["miou"][h]) for h in horizons] + [_fmt(r["iou"][h]) for h in horizons]
+        cells += [" / ".join(_fmt(moving.get(h)) for h in ("1s", "2s", "3s")), _fmt(moving.get("avg"))]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "| method | L2 at 1s / 2s / 3s (m) | L2 avg | mean-L2 1s / 2s / 3s (m) | mean-L2 avg | "
               "collision avg (%) | FPS (batch 1) | peak memory (MB) | parameters |",
@@ -96,7 +102,9 @@ def metrics_markdown(results: dict[str, dict], title: str = "") -> str:
         params = "-" if r["params"] is None else f"{r['params']:,}"
         lines.append(f"| {name} | {at} | {_fmt(r['l2_at']['avg'])} | {mean} | {_fmt(r['l2_mean']['avg'])} | "
                      f"{_fmt(coll)} | {_fmt(r['fps'], 1)} | {_fmt(r['peak_memory_mb'], 0)} | {params} |")
-    lines += ["", "mIoU/IoU in percent (0s: reconstruction of the present frame; avg: mean of 1-3 s). "
+    lines += ["", "mIoU/IoU in percent (0s: reconstruction of the present frame; avg: mean of 1-3 s); moving mIoU: "
+              "the mIoU over bicycle, bus, car, construction vehicle, motorcycle, pedestrian, trailer, truck. "
+              "Rows ending in _gt_ego use the true future ego motion. "
               "L2 at: distance at the horizon; mean-L2: mean over the steps up to it."]
     return "\n".join(lines).lstrip("\n") + "\n"
 

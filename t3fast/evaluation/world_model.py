@@ -6,8 +6,12 @@ the present frame, the "0 s" column). :func:`evaluate_forecasts` scores a method
 windows and returns the ``metrics.json`` record of that method (percent for occupancy, metres
 for L2, a rate for collisions; ``None`` where a metric does not apply)::
 
-    {"miou": {"0s", "1s", "2s", "3s", "avg"}, "iou": {...},
+    {"miou": {"0s", "1s", "2s", "3s", "avg"}, "miou_moving": {...}, "iou": {...},
      "l2_at": {"1s", "2s", "3s", "avg"}, "l2_mean": {...}, "collision": {...}}
+
+``miou_moving`` is the moving-class mIoU: the same per-class IoUs (same confusion matrices, same
+``absent`` rule) averaged over the agent classes ``MOVING_CLASSES`` (bicycle, bus, car,
+construction vehicle, motorcycle, pedestrian, trailer, truck), what a world model must move.
 
 :func:`measure_speed` adds ``fps`` (the full forecasting step at batch 1: forecaster, planner,
 decoding of the 6 future frames to labels, after warm-up), ``peak_memory_mb`` and ``params``.
@@ -24,10 +28,13 @@ from torch import Tensor
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
+from t3fast.data.classes import MOVING_CLASSES
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingBatch, collate_samples
 from t3fast.evaluation.baselines import (
     constant_velocity,
     copy_paste,
+    track_const_vel,
+    track_gt_ego,
     warp_const_vel,
     warp_present,
 )
@@ -143,16 +150,31 @@ def warp_gt_ego_method(batch: DrivingBatch) -> MethodOutput:
     return MethodOutput(labels=warp_present(batch.past_occ, future))
 
 
+def track_const_vel_method(batch: DrivingBatch) -> MethodOutput:
+    """Classical tracker: each agent's BEV component moved along its velocity between the last
+    two past frames (after ego compensation), then the scene moved into each future ego frame
+    with poses extrapolated at constant velocity and yaw rate (past information only); no plan."""
+    return MethodOutput(labels=track_const_vel(batch.past_occ, batch.ego_poses, NUM_FUTURE))
+
+
+def track_gt_ego_method(batch: DrivingBatch) -> MethodOutput:
+    """The tracker of :func:`track_const_vel_method` moved into the TRUE future ego frames (uses
+    ground-truth ego motion); no plan."""
+    return MethodOutput(labels=track_gt_ego(batch.past_occ, batch.ego_poses, NUM_FUTURE))
+
+
 def _summaries(
     occ: dict[str, OccupancyMetrics] | None, plan: PlanningMetrics | None, absent: str = "one"
 ) -> dict:
     record: dict = {}
-    for key in ("miou", "iou"):
+    for key in ("miou", "miou_moving", "iou"):
         if occ is None:
             record[key] = dict.fromkeys(OCC_KEYS)
             continue
         if key == "miou":
             values = {h: (None if m is None else 100 * m.miou(absent)) for h, m in occ.items()}
+        elif key == "miou_moving":
+            values = {h: (None if m is None else 100 * m.miou(absent, MOVING_CLASSES)) for h, m in occ.items()}
         else:
             values = {h: (None if m is None else m.summary()[key]) for h, m in occ.items()}
         values["avg"] = sum(values[h] for h in HORIZONS) / len(HORIZONS)

@@ -182,3 +182,35 @@ def test_bad_construction_and_merge() -> None:
         OccupancyMetrics().merge(OccupancyMetrics(num_classes=5, free_class=4, class_names=tuple("abcde")))
     with pytest.raises(ValueError, match="absent"):
         OccupancyMetrics().miou(absent="zero")
+
+
+def test_moving_class_miou_averages_the_agent_classes() -> None:
+    from t3fast.data.classes import BUS, MOVING_CLASSES
+
+    assert sorted(MOVING_CLASSES) == [2, 3, 4, 5, 6, 7, 9, 10]
+    # every semantic class but bus has 4 voxels, all right except car: 1 of its 4 predicted car, 3 free
+    target = torch.tensor([c for c in range(17) if c != BUS for _ in range(4)], dtype=torch.uint8)
+    pred = target.clone()
+    pred[(target == CAR).nonzero()[1:, 0]] = FREE
+    m = OccupancyMetrics()
+    m.update(pred, target)
+    assert m.per_class_iou()[CAR] == pytest.approx(0.25)
+    # bus has no ground truth: 1 under OccWorld's rule, left out with "skip"
+    assert m.miou(classes=MOVING_CLASSES) == pytest.approx((7 + 0.25) / 8)
+    assert m.miou("skip", MOVING_CLASSES) == pytest.approx((6 + 0.25) / 7)
+    assert m.miou() == pytest.approx((16 + 0.25) / 17)
+    with pytest.raises(ValueError, match="subset"):
+        m.miou(classes=[FREE])
+
+
+def test_report_tables_show_the_moving_class_miou() -> None:
+    from t3fast.evaluation.report import metrics_markdown
+
+    occ = {"0s": None, "1s": 50.0, "2s": 40.0, "3s": 30.0, "avg": 40.0}
+    plan = dict.fromkeys(("1s", "2s", "3s", "avg"))
+    record = dict(miou=occ, iou=occ, miou_moving={"0s": None, "1s": 12.5, "2s": 10.0, "3s": 7.5, "avg": 10.0},
+                  l2_at=plan, l2_mean=plan, collision=plan, fps=None, peak_memory_mb=None, params=None)
+    old = {k: v for k, v in record.items() if k != "miou_moving"}  # a record written before the column
+    text = metrics_markdown({"track_const_vel": record, "old": old})
+    assert "| moving mIoU 1s / 2s / 3s | moving mIoU avg |" in text
+    assert "| 12.50 / 10.00 / 7.50 | 10.00 |" in text and "| - / - / - | - |" in text

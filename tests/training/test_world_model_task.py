@@ -103,9 +103,9 @@ def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "copy_paste", "constant_velocity",
-                            "constant_turn_rate", "warp_const_vel", "warp_gt_ego"}
+                            "constant_turn_rate", "warp_const_vel", "warp_gt_ego", "track_const_vel", "track_gt_ego"}
     assert metrics["t3former_gt_ego"]["l2_at"]["3s"] is None  # steered: plans nothing
-    keys = {"miou", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
+    keys = {"miou", "miou_moving", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
     assert all(set(m) == keys for m in metrics.values())
     model = metrics["t3former"]
     assert set(model["miou"]) == {"0s", "1s", "2s", "3s", "avg"} and set(model["l2_at"]) == {"1s", "2s", "3s", "avg"}

@@ -105,6 +105,7 @@ class WorldModelTask:
             copy_paste_method,
             evaluate_many,
             t3former_method,
+            track_const_vel_method,
             warp_const_vel_method,
         )
 
@@ -116,7 +117,8 @@ class WorldModelTask:
         indices = list(range(min(len(self._val), data.val_windows)))
         methods = {"t3former": t3former_method(model)}
         if first:  # the baselines once, in the same pass over the windows
-            methods.update(copy_paste=copy_paste_method, warp_const_vel=warp_const_vel_method)
+            methods.update(copy_paste=copy_paste_method, warp_const_vel=warp_const_vel_method,
+                           track_const_vel=track_const_vel_method)
         records = evaluate_many(methods, self._val, indices, device=device, progress=False, absent="skip")
         result = records.pop("t3former")
         values = {"score": result["miou"]["avg"], "miou_avg": result["miou"]["avg"], "iou_avg": result["iou"]["avg"],

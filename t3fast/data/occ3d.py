@@ -23,21 +23,27 @@ Each scene's list is time ordered (2 Hz key frames). Keys read from a frame dict
 Labels are Occ3D's (see ``t3fast.data.classes``). Every problem with a file raises
 ``Occ3DFormatError`` naming the file and the problem. The info pickle is read without running
 code from it (plain data and numpy arrays only); scene names and tokens must be plain folder
-names, and poses finite with unit quaternions.
+names, and poses finite with unit quaternions. :func:`read_infos` checks every frame's keys
+above (shapes, dtypes, box counts that agree, values finite in float32) and names the scene,
+the frame index and token and the field. :func:`read_labels` checks each array's shape and
+dtype from its ``.npy`` header before decompressing it.
 """
 
 from __future__ import annotations
 
+import lzma
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from torch.utils.data import Dataset
 
 from t3fast.data import classes as C
 from t3fast.data.safe_pickle import load_restricted
-from t3fast.data.sample import PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
+from t3fast.data.sample import NUM_FUTURE, PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
 from t3fast.errors import DataFormatError
 from t3fast.paths import check_name, inside
 
@@ -62,26 +68,44 @@ NAME_TO_CLASS = {
 Occ3DFormatError = DataFormatError
 
 
+#: the first bytes of a ``.npy`` file (an ``.npz`` is a zip archive of them)
+NPY_MAGIC = b"\x93NUMPY"
+
+#: what a damaged archive or member can raise while it is read: a bad zip structure or CRC
+#: (BadZipFile), a corrupt deflate/bzip2/lzma stream (zlib.error, OSError, LZMAError), an
+#: unsupported compression method (NotImplementedError), an encrypted member (RuntimeError)
+_ARCHIVE_ERRORS: tuple[type[BaseException], ...] = (
+    zipfile.BadZipFile, zlib.error, lzma.LZMAError, OSError, EOFError, KeyError, ValueError, NotImplementedError,
+    RuntimeError,
+)
+
+
 def read_labels(path: str | Path) -> dict[str, np.ndarray]:
-    """Read and check one ``labels.npz``: uint8 ``semantics`` (0..17 or 255) and bool masks, ``[200, 200, 16]``."""
+    """Read and check one ``labels.npz``: uint8 ``semantics`` (0..17 or 255) and bool masks, ``[200, 200, 16]``.
+
+    Each array's shape and dtype are checked from its ``.npy`` header before its data is
+    decompressed, so a small file that claims a huge array costs nothing to refuse.
+    """
     path = Path(path)
     if not path.is_file():
         raise Occ3DFormatError(f"{path}: file not found")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            missing = [k for k in LABEL_KEYS if k not in npz.files]
+        with zipfile.ZipFile(path) as archive:
+            members = {name[: -len(".npy")]: name for name in archive.namelist() if name.endswith(".npy")}
+            missing = [k for k in LABEL_KEYS if k not in members]
             if missing:
-                raise Occ3DFormatError(f"{path}: missing array {missing[0]!r} (file has {sorted(npz.files)})")
-            arrays = {k: npz[k] for k in LABEL_KEYS}
+                raise Occ3DFormatError(f"{path}: missing array {missing[0]!r} (file has {sorted(members)})")
+            arrays = {k: _read_npz_member(archive, members[k], path, k) for k in LABEL_KEYS}
     except Occ3DFormatError:
         raise
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+    except zipfile.BadZipFile as exc:
+        if _starts_with(path, NPY_MAGIC):
+            raise Occ3DFormatError(
+                f"{path}: a single .npy array, not an .npz archive of {', '.join(LABEL_KEYS)}"
+            ) from exc
+        raise Occ3DFormatError(f"{path}: not a readable .npz file (BadZipFile: {exc})") from exc
+    except _ARCHIVE_ERRORS as exc:
         raise Occ3DFormatError(f"{path}: not a readable .npz file ({type(exc).__name__}: {exc})") from exc
-    for key, arr in arrays.items():
-        if arr.shape != C.GRID_SHAPE:
-            raise Occ3DFormatError(f"{path}: {key!r} has shape {arr.shape}, expected {C.GRID_SHAPE}")
-        if not (np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool):
-            raise Occ3DFormatError(f"{path}: {key!r} has dtype {arr.dtype}, expected uint8")
     sem = arrays["semantics"]
     bad = np.unique(sem[(sem > C.FREE) & (sem != C.IGNORE) | (sem < 0)])
     if bad.size:
@@ -90,18 +114,56 @@ def read_labels(path: str | Path) -> dict[str, np.ndarray]:
         if arrays[key].dtype != bool and (arrays[key].max() > 1 or arrays[key].min() < 0):
             raise Occ3DFormatError(f"{path}: {key!r} has values other than 0 and 1")
     return {
-        "semantics": sem.astype(np.uint8),
-        "mask_lidar": arrays["mask_lidar"].astype(bool),
-        "mask_camera": arrays["mask_camera"].astype(bool),
+        "semantics": np.array(sem, dtype=np.uint8, order="C"),
+        "mask_lidar": np.array(arrays["mask_lidar"], dtype=bool, order="C"),
+        "mask_camera": np.array(arrays["mask_camera"], dtype=bool, order="C"),
     }
+
+
+def _starts_with(path: Path, magic: bytes) -> bool:
+    with open(path, "rb") as f:
+        return f.read(len(magic)) == magic
+
+
+def _read_npz_member(archive: zipfile.ZipFile, name: str, path: Path, key: str) -> np.ndarray:
+    """One label array of an ``.npz``: header checked first, then exactly its bytes read."""
+    try:
+        with archive.open(name) as stream:
+            version = np.lib.format.read_magic(stream)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+            else:
+                raise Occ3DFormatError(f"{path}: {key!r} has .npy format version {version}, expected 1.0 or 2.0")
+            if dtype.hasobject:
+                raise Occ3DFormatError(f"{path}: {key!r} holds Python objects (dtype {dtype}), expected uint8")
+            if shape != C.GRID_SHAPE:
+                raise Occ3DFormatError(f"{path}: {key!r} has shape {shape}, expected {C.GRID_SHAPE}")
+            if dtype.kind not in "biu" or dtype.shape:
+                raise Occ3DFormatError(f"{path}: {key!r} has dtype {dtype}, expected uint8")
+            size = int(np.prod(shape)) * dtype.itemsize
+            data = stream.read(size)
+            if len(data) != size:
+                raise Occ3DFormatError(f"{path}: {key!r} is truncated ({len(data)} of {size} bytes)")
+            if stream.read(1):  # also makes zipfile check the member's CRC
+                raise Occ3DFormatError(f"{path}: {key!r} has more data than its header describes")
+    except Occ3DFormatError:
+        raise
+    except _ARCHIVE_ERRORS as exc:
+        raise Occ3DFormatError(f"{path}: not a readable .npz file: {key!r} ({type(exc).__name__}: {exc})") from exc
+    arr = np.frombuffer(data, dtype=dtype)
+    return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
 
 
 def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
     """Read an info pickle and return ``{scene_name: [frame, ...]}`` after checking its structure.
 
     The file is read with :func:`~t3fast.data.safe_pickle.load_restricted` (plain data and
-    numpy arrays only, no code). Scene names and tokens must be plain folder names, and every
-    frame's poses finite with unit quaternions.
+    numpy arrays only, no code). Scene names and tokens must be plain folder names, every
+    frame's poses finite with unit quaternions, and its trajectories, boxes, names, instance
+    tokens and agent trajectories of the documented shapes, with one row per box and values
+    finite in float32.
     """
     path = Path(path)
     if not path.is_file():
@@ -128,9 +190,11 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
             if token in tokens:
                 raise Occ3DFormatError(f"{where}: token {token!r} appears twice in the scene")
             tokens.add(token)
+            where = f"{where} (token {token!r})"
             _check_pose(frame, "ego2global", where)
             if "lidar2ego_rotation" in frame:
                 _check_pose(frame, "lidar2ego", where)
+            _check_annotations(frame, where)
     return infos
 
 
@@ -148,15 +212,139 @@ def _check_pose(frame: dict[str, Any], prefix: str, where: str) -> None:
 
 
 def _finite_vector(value: Any, size: int, key: str, where: str) -> np.ndarray:
-    try:
-        vec = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise Occ3DFormatError(f"{where}: {key!r} is not numeric ({exc})") from exc
+    vec = _numbers(value, key, where)
     if vec.shape != (size,):
         raise Occ3DFormatError(f"{where}: {key!r} has shape {vec.shape}, expected ({size},)")
-    if not np.all(np.isfinite(vec)):
-        raise Occ3DFormatError(f"{where}: {key!r} has non-finite values {vec.tolist()}")
     return vec
+
+
+def _describe(value: Any) -> str:
+    """``str 'xx'``, ``int 5``, ``ndarray <U3 (4,)``: what a field holds, for a message."""
+    if isinstance(value, np.ndarray):
+        return f"ndarray of {value.dtype} with shape {value.shape}"
+    text = repr(value)
+    return f"{type(value).__name__} {text if len(text) <= 40 else text[:37] + '...'}"
+
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _numbers(value: Any, key: str, where: str) -> np.ndarray:
+    """``value`` as a float64 array, refused unless it holds numbers that are finite in float32.
+
+    Samples are float32, so a value such as 1e300 (finite in float64) counts as non-finite.
+    """
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:  # e.g. ragged nested lists
+        raise Occ3DFormatError(f"{where}: {key!r} is not an array of numbers ({exc})") from exc
+    if arr.dtype.kind == "O" and all(isinstance(x, (int, float, np.number)) for x in arr.flat):
+        arr = arr.astype(np.float64)
+    if arr.dtype.kind not in "biuf":
+        raise Occ3DFormatError(f"{where}: {key!r} must hold numbers, got {_describe(value)}")
+    arr = arr.astype(np.float64)
+    finite = np.abs(arr) <= FLOAT32_MAX  # False for NaN, inf and what float32 rounds to inf
+    if not finite.all():
+        bad = np.argwhere(~finite)[0]
+        first = float(arr[tuple(bad)])
+        at = f"first at index {tuple(int(i) for i in bad)}: {first!r}" if arr.ndim else repr(first)
+        count = int((~finite).sum())
+        raise Occ3DFormatError(
+            f"{where}: {key!r} has {count} non-finite value{'s' if count > 1 else ''} in float32 ({at})"
+        )
+    return arr
+
+
+def _strings(value: Any, key: str, where: str, kinds: str = "U") -> np.ndarray:
+    """A 1-D sequence (list, tuple or array) of strings (``kinds`` "U") or strings and integers ("Ui")."""
+    if isinstance(value, np.ndarray):
+        items = value
+    elif isinstance(value, (list, tuple)):
+        items = np.empty(len(value), dtype=object)
+        items[:] = list(value)
+    else:
+        raise Occ3DFormatError(f"{where}: {key!r} must be a list or array of strings, got {_describe(value)}")
+    if items.ndim != 1:
+        raise Occ3DFormatError(f"{where}: {key!r} has shape {items.shape}, expected (N,)")
+    allowed = (str, np.str_) + ((int, np.integer) if "i" in kinds else ())
+    if len(items) and items.dtype.kind not in kinds:
+        bad = [x for x in items.tolist() if not isinstance(x, allowed) or isinstance(x, bool)]
+        if bad:
+            raise Occ3DFormatError(
+                f"{where}: {key!r} must hold strings, got {type(bad[0]).__name__} {bad[0]!r}"
+            )
+    return items
+
+
+def _rows(arr: np.ndarray, key: str, where: str, expected: str, boxes: int) -> None:
+    """``arr`` has one row per box."""
+    if len(arr) != boxes:
+        raise Occ3DFormatError(
+            f"{where}: {key!r} has {len(arr)} rows (shape {arr.shape}) but 'gt_boxes' has {boxes} boxes; "
+            f"expected {expected} with one row per box"
+        )
+
+
+def _check_annotations(frame: dict[str, Any], where: str) -> None:
+    """The optional ego trajectory and the boxes with their names, identities and trajectories:
+    shapes, lengths that agree with each other, dtypes and float32-finite values."""
+    if "gt_ego_fut_trajs" in frame:
+        traj = _numbers(frame["gt_ego_fut_trajs"], "gt_ego_fut_trajs", where)
+        if traj.shape != (NUM_FUTURE, 2):
+            raise Occ3DFormatError(
+                f"{where}: 'gt_ego_fut_trajs' has shape {traj.shape}, expected ({NUM_FUTURE}, 2)"
+            )
+    if "gt_ego_fut_masks" in frame:
+        masks = _numbers(frame["gt_ego_fut_masks"], "gt_ego_fut_masks", where)
+        if masks.shape != (NUM_FUTURE,):
+            raise Occ3DFormatError(f"{where}: 'gt_ego_fut_masks' has shape {masks.shape}, expected ({NUM_FUTURE},)")
+    boxes = _numbers(frame.get("gt_boxes", np.zeros((0, 7))), "gt_boxes", where)
+    if boxes.size == 0:
+        boxes = boxes.reshape(0, 7)
+    if boxes.ndim != 2 or boxes.shape[1] != 7:
+        raise Occ3DFormatError(f"{where}: 'gt_boxes' has shape {boxes.shape}, expected (N, 7)")
+    n = len(boxes)
+    names = _strings(frame.get("gt_names", []), "gt_names", where)
+    if len(names) != n:
+        raise Occ3DFormatError(
+            f"{where}: 'gt_names' has {len(names)} entries but 'gt_boxes' has {n} boxes (expected one name per box)"
+        )
+    if "instance_tokens" in frame:
+        ids = _strings(frame["instance_tokens"], "instance_tokens", where, kinds="Ui")
+        if len(ids) != n:
+            raise Occ3DFormatError(
+                f"{where}: 'instance_tokens' has {len(ids)} entries but 'gt_boxes' has {n} boxes "
+                "(expected one token per box)"
+            )
+        seen = [str(t) for t in ids.tolist()]
+        if len(set(seen)) != len(seen):
+            twice = next(t for t in seen if seen.count(t) > 1)
+            raise Occ3DFormatError(f"{where}: 'instance_tokens' has {twice!r} twice")
+    steps = None
+    if "gt_agent_fut_trajs" in frame:
+        trajs = _numbers(frame["gt_agent_fut_trajs"], "gt_agent_fut_trajs", where)
+        if n == 0 and trajs.size == 0:
+            trajs = trajs.reshape(0, NUM_FUTURE * 2)
+        if trajs.ndim == 3 and trajs.shape[2] == 2 and trajs.shape[1] > 0:
+            steps = trajs.shape[1]
+        elif trajs.ndim == 2 and trajs.shape[1] > 0 and trajs.shape[1] % 2 == 0:
+            steps = trajs.shape[1] // 2
+        else:
+            raise Occ3DFormatError(
+                f"{where}: 'gt_agent_fut_trajs' has shape {trajs.shape}, expected (N, 2 * steps), e.g. (N, 12)"
+            )
+        _rows(trajs, "gt_agent_fut_trajs", where, "(N, 2 * steps)", n)
+    if "gt_agent_fut_masks" in frame:
+        masks = _numbers(frame["gt_agent_fut_masks"], "gt_agent_fut_masks", where)
+        if n == 0 and masks.size == 0:
+            masks = masks.reshape(0, steps or NUM_FUTURE)
+        expected = f"(N, {steps})" if steps else "(N, steps)"
+        if masks.ndim != 2 or (steps is not None and masks.shape[1] != steps):
+            raise Occ3DFormatError(
+                f"{where}: 'gt_agent_fut_masks' has shape {masks.shape}, expected {expected} "
+                "(one mask per step of 'gt_agent_fut_trajs')"
+            )
+        _rows(masks, "gt_agent_fut_masks", where, expected, n)
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -242,35 +430,42 @@ class Occ3DNuScenes(Dataset):
         frames = self.infos[scene][start : start + WINDOW]
         labels = [read_labels(self.label_path(scene, f["token"])) for f in frames]
         poses = np.stack([_transform(f["ego2global_translation"], f["ego2global_rotation"]) for f in frames])
-        boxes, valid, classes = self._tracks(scene, frames)
-        sample = build_sample(
-            occ=np.stack([lab["semantics"] for lab in labels]),
-            mask_camera=np.stack([lab["mask_camera"] for lab in labels]),
-            ego_poses=poses,
-            boxes=boxes,
-            box_valid=valid,
-            box_labels=classes,
-            scene=scene,
-            start=start,
-            future_actions=self._future_actions(scene, start, frames[PRESENT]),
-        )
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is refused just below
+            boxes, valid, classes = self._tracks(scene, frames)
+            sample = build_sample(
+                occ=np.stack([lab["semantics"] for lab in labels]),
+                mask_camera=np.stack([lab["mask_camera"] for lab in labels]),
+                ego_poses=poses,
+                boxes=boxes,
+                box_valid=valid,
+                box_labels=classes,
+                scene=scene,
+                start=start,
+                future_actions=self._future_actions(scene, start, frames[PRESENT]),
+            )
+        self._check_finite(sample, frames)
         return random_flip(sample) if self.flip else sample
 
+    def _check_finite(self, sample: DrivingSample, frames: list[dict[str, Any]]) -> None:
+        """Every value read is finite in float32, but poses far apart can still overflow once
+        combined (a relative pose, a step between frames): refuse such a window."""
+        for key in ("past_actions", "future_actions", "boxes", "ego_poses"):
+            if not torch.isfinite(getattr(sample, key)).all():
+                raise Occ3DFormatError(
+                    f"{self.info_path}: scene {sample.scene!r} frames {sample.start}..{sample.start + WINDOW - 1} "
+                    f"(tokens {frames[0]['token']!r}..{frames[-1]['token']!r}): the window's {key} are not finite "
+                    "in float32; its poses or boxes are too large"
+                )
+
     def _future_actions(self, scene: str, start: int, frame: dict[str, Any]) -> np.ndarray | None:
-        """The present frame's ``gt_ego_fut_trajs`` in ego coordinates (None: use the poses)."""
+        """The present frame's ``gt_ego_fut_trajs`` in ego coordinates (None: use the poses).
+
+        Shapes and values were checked by :func:`read_infos`.
+        """
         if "gt_ego_fut_trajs" not in frame:
             return None
         traj = np.asarray(frame["gt_ego_fut_trajs"], dtype=np.float64)
-        if traj.shape != (6, 2):
-            raise Occ3DFormatError(
-                f"{self.info_path}: scene {scene!r} frame {start + PRESENT}: 'gt_ego_fut_trajs' has shape "
-                f"{traj.shape}, expected (6, 2)"
-            )
-        if not np.all(np.isfinite(traj)):
-            raise Occ3DFormatError(
-                f"{self.info_path}: scene {scene!r} frame {start + PRESENT}: 'gt_ego_fut_trajs' has non-finite values"
-            )
-        masks = np.asarray(frame.get("gt_ego_fut_masks", np.ones(6)))
+        masks = np.asarray(frame.get("gt_ego_fut_masks", np.ones(NUM_FUTURE)), dtype=np.float64)
         if not np.all(masks > 0):
             return None
         return traj @ _lidar2ego(frame)[:2, :2].T
@@ -279,13 +474,9 @@ class Occ3DNuScenes(Dataset):
         """Boxes ``[11, A, 7]`` (each frame's own coordinates), validity ``[11, A]``, class ids ``[A]``."""
         per_frame = []
         for f in frames:
+            # shapes, lengths and values were checked by read_infos
             b = np.asarray(f.get("gt_boxes", np.zeros((0, 7))), dtype=np.float64).reshape(-1, 7)
             names = f.get("gt_names", [])
-            if len(names) != len(b):
-                raise Occ3DFormatError(
-                    f"{self.info_path}: scene {scene!r} token {f['token']!r}: "
-                    f"{len(b)} gt_boxes but {len(names)} gt_names"
-                )
             per_frame.append((_boxes_to_ego(b, _lidar2ego(f)), _class_ids(names)))
         if all("instance_tokens" in f for f in frames):
             ids = sorted({str(t) for f in frames for t in f["instance_tokens"]})
@@ -306,7 +497,7 @@ class Occ3DNuScenes(Dataset):
         if "gt_agent_fut_trajs" in present and len(b):
             rot = _lidar2ego(present)[:2, :2]
             steps = np.asarray(present["gt_agent_fut_trajs"], dtype=np.float64).reshape(len(b), -1, 2) @ rot.T
-            masks = np.asarray(present.get("gt_agent_fut_masks", np.ones(steps.shape[:2]))) > 0
+            masks = np.asarray(present.get("gt_agent_fut_masks", np.ones(steps.shape[:2])), dtype=np.float64) > 0
             pos = b[:, None, :2] + np.cumsum(steps, axis=1)
             poses = [_transform(f["ego2global_translation"], f["ego2global_rotation"]) for f in frames]
             for k in range(min(steps.shape[1], WINDOW - PRESENT - 1)):

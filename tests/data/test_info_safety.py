@@ -9,9 +9,11 @@ import pickle
 
 import numpy as np
 import pytest
+import torch
 
 from t3fast.commands.main import main
-from t3fast.data.occ3d import read_infos
+from t3fast.data.occ3d import Occ3DNuScenes, read_infos
+from t3fast.data.occ3d_frames import Occ3DFrames
 from t3fast.data.safe_pickle import load_restricted
 from t3fast.errors import DataFormatError
 from t3fast.paths import check_name, inside
@@ -124,7 +126,8 @@ def test_bad_poses_name_the_frame(infos, tmp_path, key, value, message):
     scene = next(iter(infos["infos"]))
     infos["infos"][scene][3][key] = value
     write_info(tmp_path / "bad.pkl", infos)
-    with pytest.raises(DataFormatError, match=f"scene {scene!r} frame 3: '{key}'.*{message}"):
+    token = infos["infos"][scene][3]["token"]
+    with pytest.raises(DataFormatError, match=f"scene {scene!r} frame 3 \\(token {token!r}\\): '{key}'.*{message}"):
         read_infos(tmp_path / "bad.pkl")
 
 
@@ -154,7 +157,8 @@ def test_forecast_refuses_bad_poses_and_nothing_to_do(exported, infos, tmp_path,
     write_info(tmp_path / "bad.pkl", infos)
     assert main(forecast) == 1
     err = capsys.readouterr().err
-    assert err == (f"t3fast forecast: {tmp_path / 'bad.pkl'}: scene {scene!r} frame 2: "
+    token = infos["infos"][scene][2]["token"]
+    assert err == (f"t3fast forecast: {tmp_path / 'bad.pkl'}: scene {scene!r} frame 2 (token {token!r}): "
                    "'ego2global_rotation' is not a unit quaternion (norm 0)\n")
 
     infos["infos"][scene][2]["ego2global_rotation"] = rotation
@@ -163,3 +167,117 @@ def test_forecast_refuses_bad_poses_and_nothing_to_do(exported, infos, tmp_path,
     assert main(forecast) == 1
     assert "nothing to forecast" in capsys.readouterr().err
     assert not out.exists()
+
+
+def _boxes(frame) -> int:
+    return len(frame["gt_boxes"])
+
+
+#: (field, a function of the frame giving the bad value, what the message must say)
+BAD_FIELDS = {
+    "ego masks a string": ("gt_ego_fut_masks", lambda f: "xx", "must hold numbers, got str 'xx'"),
+    "ego masks too short": ("gt_ego_fut_masks", lambda f: np.ones(5), "has shape (5,), expected (6,)"),
+    "ego trajectory 3 columns": ("gt_ego_fut_trajs", lambda f: np.zeros((6, 3)), "has shape (6, 3), expected (6, 2)"),
+    "ego trajectory ragged": ("gt_ego_fut_trajs", lambda f: [[0.0, 1.0], [2.0]], "is not an array of numbers"),
+    "names an int": ("gt_names", lambda f: 5, "must be a list or array of strings, got int 5"),
+    "names not strings": ("gt_names", lambda f: np.arange(_boxes(f)), "must hold strings, got int 0"),
+    "names one short": ("gt_names", lambda f: f["gt_names"][:-1],
+                        "has {n1} entries but 'gt_boxes' has {n} boxes"),
+    "boxes 6 columns": ("gt_boxes", lambda f: f["gt_boxes"][:, :6], "has shape ({n}, 6), expected (N, 7)"),
+    "boxes flat": ("gt_boxes", lambda f: f["gt_boxes"].reshape(-1), "has shape ({n7},), expected (N, 7)"),
+    "boxes strings": ("gt_boxes", lambda f: f["gt_boxes"].astype(str), "must hold numbers, got ndarray of <U"),
+    "tokens one extra": ("instance_tokens", lambda f: np.append(f["instance_tokens"], "x"),
+                         "has {n+1} entries but 'gt_boxes' has {n} boxes"),
+    "tokens repeated": ("instance_tokens", lambda f: np.array([f["instance_tokens"][0]] * _boxes(f)),
+                        "has {tok0!r} twice"),
+    "tokens 2-D": ("instance_tokens", lambda f: f["instance_tokens"][:, None], "has shape ({n}, 1), expected (N,)"),
+    "tokens floats": ("instance_tokens", lambda f: [0.5] * _boxes(f), "must hold strings, got float 0.5"),
+    "agent trajectories one row short": ("gt_agent_fut_trajs", lambda f: f["gt_agent_fut_trajs"][:-1],
+                                         "has {n1} rows (shape ({n1}, 12)) but 'gt_boxes' has {n} boxes"),
+    "agent trajectories odd columns": ("gt_agent_fut_trajs", lambda f: f["gt_agent_fut_trajs"][:, :11],
+                                       "has shape ({n}, 11), expected (N, 2 * steps)"),
+    "agent masks for other steps": ("gt_agent_fut_masks", lambda f: f["gt_agent_fut_masks"][:, :5],
+                                    "has shape ({n}, 5), expected (N, 6)"),
+    "agent masks a dict": ("gt_agent_fut_masks", lambda f: {"a": 1}, "must hold numbers, got dict"),
+}
+
+#: values that are not finite once they are float32, as every sample is
+NON_FINITE = {
+    "NaN box": ("gt_boxes", lambda f: _with(f["gt_boxes"], (1, 3), math.nan), "first at index (1, 3): nan"),
+    "inf agent trajectory": ("gt_agent_fut_trajs", lambda f: _with(f["gt_agent_fut_trajs"], (0, 5), -math.inf),
+                             "first at index (0, 5): -inf"),
+    "huge ego trajectory": ("gt_ego_fut_trajs", lambda f: _with(f["gt_ego_fut_trajs"], (2, 0), 1e39),
+                            "first at index (2, 0): 1e+39"),
+    "NaN ego mask": ("gt_ego_fut_masks", lambda f: _with(f["gt_ego_fut_masks"], (0,), math.nan), "nan"),
+    "translation 1e300": ("ego2global_translation", lambda f: [0.0, 1e300, 0.0], "first at index (1,): 1e+300"),
+    "lidar translation 1e300": ("lidar2ego_translation", lambda f: [1e300, 0.0, 0.0], "1e+300"),
+}
+
+
+def _with(array, index, value):
+    out = np.array(array, dtype=np.float64)
+    out[index] = value
+    return out
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FIELDS) + sorted(NON_FINITE))
+def test_bad_info_fields_name_file_scene_frame_and_field(infos, tmp_path, case):
+    key, make, expected = {**BAD_FIELDS, **NON_FINITE}[case]
+    scene = next(iter(infos["infos"]))
+    frame = infos["infos"][scene][3]
+    n = _boxes(frame)
+    assert n >= 2
+    frame[key] = make(frame)
+    if key.startswith("lidar2ego"):
+        frame["lidar2ego_rotation"] = [1.0, 0.0, 0.0, 0.0]
+    expected = expected.format(n=n, n1=n - 1, n7=7 * n, tok0=str(frame.get("instance_tokens", ["?"])[0]),
+                               **{"n+1": n + 1})
+    write_info(tmp_path / "bad.pkl", infos)
+    with pytest.raises(DataFormatError) as err:
+        read_infos(tmp_path / "bad.pkl")
+    where = f"{tmp_path / 'bad.pkl'}: scene {scene!r} frame 3 (token {frame['token']!r}): {key!r} "
+    assert str(err.value).startswith(where), str(err.value)
+    assert expected in str(err.value)
+    if case in NON_FINITE:
+        assert "non-finite value" in str(err.value) and "in float32" in str(err.value)
+
+
+def test_float32_finite_but_overflowing_poses_are_refused_per_window(exported, infos, tmp_path):
+    """Each translation is finite in float32, but the step between two frames is not."""
+    root, _ = exported
+    scene = next(iter(infos["infos"]))
+    infos["infos"][scene][1]["ego2global_translation"] = [3e38, 0.0, 0.0]
+    infos["infos"][scene][2]["ego2global_translation"] = [-3e38, 0.0, 0.0]
+    write_info(tmp_path / "bad.pkl", infos)
+    dataset = Occ3DNuScenes(root, tmp_path / "bad.pkl")
+    with pytest.raises(DataFormatError, match=rf"scene {scene!r} frames 0\.\.10 .*past_actions are not finite"):
+        dataset[0]
+
+
+def test_cli_reports_a_bad_field_in_one_line(exported, infos, tmp_path, capsys):
+    root, _ = exported
+    scene = next(iter(infos["infos"]))
+    infos["infos"][scene][0]["gt_boxes"] = _with(infos["infos"][scene][0]["gt_boxes"], (0, 0), math.nan)
+    write_info(tmp_path / "bad.pkl", infos)
+    for argv in (["data", "render", "--root", str(root), "--info", str(tmp_path / "bad.pkl"), "--out",
+                  str(tmp_path / "r.png")],
+                 ["view", "--data", str(root), "--info", str(tmp_path / "bad.pkl"), "--out", str(tmp_path / "v.html")]):
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(tmp_path / "bad.pkl") in err and f"scene {scene!r} frame 0 (token" in err
+        assert "'gt_boxes' has 1 non-finite value in float32 (first at index (0, 0): nan)" in err
+    assert not (tmp_path / "r.png").exists() and not (tmp_path / "v.html").exists()
+    with pytest.raises(DataFormatError, match="'gt_boxes' has 1 non-finite"):
+        Occ3DFrames(root, tmp_path / "bad.pkl")
+
+
+def test_frames_without_boxes_or_with_empty_arrays_load(exported, infos, tmp_path):
+    root, _ = exported
+    scene = next(iter(infos["infos"]))
+    for frame in infos["infos"][scene]:
+        for key in ("gt_boxes", "gt_names", "instance_tokens", "gt_agent_fut_trajs", "gt_agent_fut_masks"):
+            frame[key] = np.array([])
+    infos["infos"][scene][1] = {k: v for k, v in infos["infos"][scene][1].items() if not k.startswith("gt_")}
+    write_info(tmp_path / "empty.pkl", infos)
+    sample = Occ3DNuScenes(root, tmp_path / "empty.pkl")[0]
+    assert sample.boxes.shape[1] == 0 and torch.isfinite(sample.future_actions).all()

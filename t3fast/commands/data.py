@@ -10,6 +10,11 @@ from tqdm import tqdm
 
 from t3fast.errors import UsageError
 
+#: the longest side of a ``data render`` picture, in pixels (a 6-frame strip at --scale 6 is 7220 wide)
+MAX_IMAGE_SIDE = 8192
+#: pixels between the tiles of a rendered strip (``t3fast.viz.bev.render_sample``)
+TILE_GAP = 4
+
 
 def add_data_commands(sub: argparse._SubParsersAction) -> None:
     """Register ``data export-synthetic | stats | render`` on the root command's sub-parsers."""
@@ -20,7 +25,7 @@ def add_data_commands(sub: argparse._SubParsersAction) -> None:
     exp.add_argument("--out", required=True, help="output directory (gets gts/ and the info pickle)")
     exp.add_argument("--scenes", type=int, default=10, help="number of scenes")
     exp.add_argument("--split", default="train", choices=["train", "val", "test"])
-    exp.add_argument("--frames", type=int, default=40, help="2 Hz frames per scene")
+    exp.add_argument("--frames", type=int, default=40, help="2 Hz frames per scene (11 to 1000)")
     exp.set_defaults(func=_export)
 
     stats = cmds.add_parser("stats", help="class frequencies, height profiles and ego-motion summary of a split")
@@ -43,9 +48,23 @@ def add_data_commands(sub: argparse._SubParsersAction) -> None:
 def _add_source_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="val", choices=["train", "val", "test"], help="synthetic split")
     p.add_argument("--scenes", type=int, default=8, help="synthetic scenes to use")
-    p.add_argument("--frames-per-scene", type=int, default=40)
+    p.add_argument("--frames-per-scene", type=int, default=40, help="2 Hz frames per synthetic scene (11 to 1000)")
     p.add_argument("--root", type=Path, help="read Occ3D-layout data from this directory instead")
     p.add_argument("--info", type=Path, help="info pickle for --root")
+
+
+def _check_synthetic(scenes: int, frames: int, frames_flag: str) -> None:
+    """Refuse scene and frame counts the synthetic generator cannot serve, before any work."""
+    from t3fast.data.sample import WINDOW
+    from t3fast.data.synthetic.dataset import MAX_FRAMES_PER_SCENE, SPLIT_SIZE
+
+    if not 1 <= scenes <= SPLIT_SIZE:
+        raise UsageError(f"--scenes {scenes}: expected 1..{SPLIT_SIZE}")
+    if not WINDOW <= frames <= MAX_FRAMES_PER_SCENE:
+        raise UsageError(
+            f"{frames_flag} {frames}: expected {WINDOW}..{MAX_FRAMES_PER_SCENE} frames per scene "
+            f"(a window needs {WINDOW}; a scene is generated whole in memory, about 1.7 MB a frame)"
+        )
 
 
 def _dataset(args: argparse.Namespace, stride: int):
@@ -57,12 +76,14 @@ def _dataset(args: argparse.Namespace, stride: int):
         return Occ3DNuScenes(args.root, args.info, stride=stride)
     from t3fast.data.synthetic.dataset import SyntheticDriving
 
+    _check_synthetic(args.scenes, args.frames_per_scene, "--frames-per-scene")
     return SyntheticDriving(args.split, args.scenes, args.frames_per_scene, stride=stride)
 
 
 def _export(args: argparse.Namespace) -> int:
     from t3fast.data.export import export_synthetic
 
+    _check_synthetic(args.scenes, args.frames, "--frames")
     start = time.perf_counter()
     info = export_synthetic(args.out, args.split, args.scenes, args.frames)
     print(f"wrote {args.scenes} scenes to {args.out} ({time.perf_counter() - start:.1f} s); info: {info}")
@@ -72,8 +93,6 @@ def _export(args: argparse.Namespace) -> int:
 def _stats(args: argparse.Namespace) -> int:
     from t3fast.data.stats import format_class_table, format_motion_summary
 
-    if args.scenes <= 0:
-        raise ValueError(f"--scenes must be at least 1, got {args.scenes}")
     if args.occ3d is not None:
         from t3fast.data.occ3d import read_labels
 
@@ -88,6 +107,7 @@ def _stats(args: argparse.Namespace) -> int:
     if args.root is None:
         from t3fast.data.synthetic.dataset import SyntheticScenes
 
+        _check_synthetic(args.scenes, args.frames_per_scene, "--frames-per-scene")
         scenes = SyntheticScenes(args.split, args.scenes, args.frames_per_scene)
         start = time.perf_counter()
         vols = []
@@ -132,13 +152,40 @@ def _label_stats(volumes) -> tuple:
     return counts, format_height_profile(total, frames)
 
 
+def _render_frames(text: str, scale: int) -> list[int]:
+    """The frames of ``--frames`` (of an 11-frame window), checked with ``--scale`` against
+    :data:`MAX_IMAGE_SIDE` before any data is read."""
+    from t3fast.data import classes as C
+    from t3fast.data.sample import WINDOW
+
+    try:
+        frames = [int(f) for f in text.split(",")]
+    except ValueError:
+        raise UsageError(f"--frames {text!r}: expected comma-separated frame numbers, e.g. 0,2,4") from None
+    outside = [f for f in frames if not 0 <= f < WINDOW]
+    if outside:
+        raise UsageError(f"--frames {text}: frame {outside[0]} is out of range; a window has frames 0..{WINDOW - 1}")
+    tile = max(C.GRID_SHAPE[0], C.GRID_SHAPE[1])
+    largest = max((MAX_IMAGE_SIDE + TILE_GAP) // len(frames) - TILE_GAP, 0) // tile
+    width = len(frames) * tile * scale + TILE_GAP * (len(frames) - 1)
+    if scale < 1 or width > MAX_IMAGE_SIDE:
+        raise UsageError(
+            f"--scale {scale}: expected 1..{largest} for {len(frames)} frames (the picture may be at most "
+            f"{MAX_IMAGE_SIDE} pixels wide; each frame is {tile} x --scale pixels)"
+            if largest >= 1 else
+            f"--frames {text}: {len(frames)} frames do not fit in a picture {MAX_IMAGE_SIDE} pixels wide "
+            f"(each frame is {tile} pixels at --scale 1)"
+        )
+    return frames
+
+
 def _render(args: argparse.Namespace) -> int:
     from t3fast.viz.bev import save_sample_png
 
+    frames = _render_frames(args.frames, args.scale)
     ds = _dataset(args, 1)
     if not 0 <= args.index < len(ds):
         raise UsageError(f"--index {args.index} is out of range: the data has {len(ds)} windows")
-    frames = [int(f) for f in args.frames.split(",")]
     path = save_sample_png(ds[args.index], args.out, frames, args.scale, args.mask)
     print(f"wrote {path}")
     return 0

@@ -23,6 +23,8 @@ from t3fast.data.synthetic.scene import SyntheticScene, generate_scene, world_to
 SPLIT_SEEDS = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 SPLIT_SIZE = 1_000_000  # seeds per split: num_scenes may not exceed it
 DEFAULT_NUM_SCENES = {"train": 200, "val": 40, "test": 40}
+#: a scene is generated whole in memory (about 1.7 GB and 45 s for 1000 frames)
+MAX_FRAMES_PER_SCENE = 1000
 
 
 def scene_seed(split: str, index: int) -> int:
@@ -100,8 +102,11 @@ class SyntheticScenes:
         self.split = split
         self.num_scenes = DEFAULT_NUM_SCENES[split] if num_scenes is None else num_scenes
         scene_seed(split, max(self.num_scenes - 1, 0))  # validates split and size
-        if frames_per_scene < WINDOW:
-            raise ValueError(f"frames_per_scene must be at least {WINDOW}, got {frames_per_scene}")
+        if not WINDOW <= frames_per_scene <= MAX_FRAMES_PER_SCENE:
+            raise ValueError(
+                f"frames_per_scene must be {WINDOW}..{MAX_FRAMES_PER_SCENE} (a scene is generated whole in memory), "
+                f"got {frames_per_scene}"
+            )
         self.frames_per_scene = frames_per_scene
         self._cache: dict[int, PackedScene] = {}
         self._lock = threading.Lock()

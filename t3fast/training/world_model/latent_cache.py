@@ -1,0 +1,148 @@
+"""Ego-aligned, encoded training windows kept on disk: stage 2 without an encoder in the step.
+
+The encoder is frozen in stage 2, so a window's 11 frames moved into its present ego frame
+(:func:`~t3fast.training.world_model.windows.ego_aligned_window`) always encode to the same
+planes. Encoding them costs more than the forecaster's whole step on a CPU, so each window is
+encoded once, stored in float16 (one file per window, about 2.3 MB with the small
+autoencoder), and read by every later run and ablation. A window's file also holds what the
+motion targets are made from: the agents' boxes and the ego's displacements.
+
+The cache folder's name hashes the encoder's weights and the synthetic world's generator
+source, so a new autoencoder or a changed world builds a new cache instead of reading stale
+planes. Building is resumable: windows whose file exists are skipped, and every file is
+written atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+import t3fast.data.synthetic as synthetic_package
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.models.triplane import Triplane
+from t3fast.models.world_model import T3Former
+from t3fast.training.triplane_cache import encoder_digest
+from t3fast.training.world_model.windows import ego_aligned_window
+
+
+def world_digest() -> str:
+    """Short hash of the synthetic world's generator source (the data a cache was built from)."""
+    h = hashlib.sha256()
+    for path in sorted(Path(synthetic_package.__file__).parent.glob("*.py")):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
+
+
+@dataclass
+class AlignedWindow:
+    """One cached window: planes ``[11, C, H, W]`` (float32 once read) of its frames in the
+    present ego frame; ``boxes`` ``[11, A, 7]`` and ``box_valid`` ``[11, A]`` in the present
+    frame; ``past_actions`` ``[4, 2]``, ``future_actions`` ``[6, 2]``."""
+
+    planes: Triplane
+    boxes: Tensor
+    box_valid: Tensor
+    past_actions: Tensor
+    future_actions: Tensor
+
+
+class AlignedLatentCache(Dataset):
+    """The windows of a :class:`SyntheticDriving` split, ego-aligned and encoded, on disk.
+
+    Args:
+        windows: the training windows (``flip=False``: the cache stores them as generated;
+            augmentation happens after reading).
+        model: an ego-aligned :class:`T3Former` whose frozen encoder encodes the frames.
+        cache_dir: parent folder; the cache is ``cache_dir/aligned-<encoder>-<world>-<split>``.
+    """
+
+    def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
+        if windows.flip:
+            raise ValueError("AlignedLatentCache stores windows as generated: pass flip=False")
+        self.windows, self.model = windows, model
+        split = windows.scenes.split
+        key = f"{encoder_digest(model.encoder)}-{world_digest()}-{split}-{windows.scenes.frames_per_scene}f"
+        self.root = Path(cache_dir) / f"aligned-{key}"
+
+    def path(self, index: int) -> Path:
+        scene, start = self.windows.locate(index)
+        return self.root / f"scene{scene:05d}-start{start:03d}.pt"
+
+    def missing(self) -> list[int]:
+        """Indices of the windows not yet in the cache."""
+        return [i for i in range(len(self.windows)) if not self.path(i).is_file()]
+
+    @torch.no_grad()
+    def build(self, progress: bool = True) -> int:
+        """Encode every window not yet cached; returns how many were encoded."""
+        todo = self.missing()
+        device = next(self.model.parameters()).device
+        for index in tqdm(todo, desc="encode aligned windows", unit="window", disable=not progress or not todo):
+            sample = self.windows[index]
+            planes, _ = ego_aligned_window(self.model, sample.occ[None].to(device), sample.ego_poses[None].to(device))
+            save_checkpoint(
+                {
+                    "planes": tuple(None if p is None else p[0].half().cpu() for p in planes),
+                    "boxes": sample.boxes,
+                    "box_valid": sample.box_valid,
+                    "past_actions": sample.past_actions,
+                    "future_actions": sample.future_actions,
+                },
+                self.path(index),
+            )
+        return len(todo)
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, index: int) -> AlignedWindow:
+        path = self.path(index)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: window {index} is not cached yet (build() first)")
+        state = load_checkpoint(path)
+        planes = Triplane(*(None if p is None else p.float() for p in state["planes"]))
+        return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"])
+
+
+@dataclass
+class AlignedBatch:
+    """Cached windows collated: planes ``[B, 11, C, H, W]``, ``boxes`` ``[B, 11, A, 7]`` (A
+    padded with invalid boxes), ``box_valid`` ``[B, 11, A]``, actions ``[B, 4, 2]``,
+    ``[B, 6, 2]``."""
+
+    planes: Triplane
+    boxes: Tensor
+    box_valid: Tensor
+    past_actions: Tensor
+    future_actions: Tensor
+
+    def to(self, device: torch.device | str) -> AlignedBatch:
+        return AlignedBatch(self.planes.map(lambda p: p.to(device)), self.boxes.to(device), self.box_valid.to(device),
+                            self.past_actions.to(device), self.future_actions.to(device))
+
+
+def collate_aligned(items: list[AlignedWindow]) -> AlignedBatch:
+    """Stack cached windows; windows with fewer agents get invalid padding boxes."""
+    agents = max(item.boxes.shape[1] for item in items)
+
+    def pad(x: Tensor) -> Tensor:
+        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, agents - x.shape[1]))
+
+    first = items[0].planes
+    planes = Triplane(*(None if first[i] is None else torch.stack([it.planes[i] for it in items]) for i in range(3)))
+    return AlignedBatch(
+        planes,
+        torch.stack([pad(it.boxes) for it in items]),
+        torch.stack([pad(it.box_valid) for it in items]),
+        torch.stack([it.past_actions for it in items]),
+        torch.stack([it.future_actions for it in items]),
+    )

@@ -1,0 +1,58 @@
+"""The stage-2 loss of the flow forecaster on cached ego-aligned windows: a loss that carries motion.
+
+In the ego-aligned frame almost every cell of a future plane equals the present one, and the
+ones that do not are mostly the world coming into view, not agents moving (agents cover 1-3 %
+of the xy plane). A plain L1 over the plane therefore rewards copying. Here:
+
+* ``latent``: L1 + gamma * L2 between the predicted and the encoded future xy planes, each
+  cell weighted ``1 + agent_weight`` where an agent is, now or at that step (so the moving
+  content carries a fixed share of the loss however small it is), else 1;
+* ``flow``: L1 between the predicted flow and the agents' motion
+  (:func:`~t3fast.training.world_model.motion_targets.agent_flow`) on the cells inside their
+  boxes, plus ``static_flow_weight`` x the flow's size where nothing moves.
+
+``total = latent + flow_weight * flow`` is exactly what the gradient sees. Also logged, without
+gradient: the same latent loss of the copy forecast (the present plane repeated), the bar a
+forecaster has to get under.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from t3fast.data.sample import PRESENT
+from t3fast.training.configs import WorldLossConfig
+from t3fast.training.world_model.latent_cache import AlignedBatch
+from t3fast.training.world_model.motion_targets import agent_flow
+
+
+def _latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) -> Tensor:
+    """Weighted mean over cells of the channel-mean L1 + gamma L2; planes ``[B, S, C, H, W]``."""
+    diff = pred - target
+    err = diff.abs().mean(2) + gamma * diff.square().mean(2)
+    return (weight * err).sum() / weight.sum()
+
+
+def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) -> tuple[Tensor, dict[str, float]]:
+    """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc)."""
+    planes = batch.planes
+    history = planes.map(lambda p: p[:, : PRESENT + 1])
+    futures, flows, _ = model(history, batch.past_actions, motion=True)
+    pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
+    target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + pred.shape[1]]
+    present = planes.xy[:, PRESENT : PRESENT + 1]
+    flow, moving, static = agent_flow(batch.boxes, batch.box_valid, tuple(pred.shape[-2:]))
+    flow, moving, static = flow[:, : pred.shape[1]], moving[:, : pred.shape[1]], static[:, : pred.shape[1]]
+    weight = 1.0 + loss.agent_weight * (~static).float()
+    latent = _latent_error(pred, target, weight, loss.gamma)
+    flow_error = (flows - flow).abs().sum(2)
+    flow_moving = (flow_error * moving).sum() / moving.sum().clamp(min=1)
+    flow_static = (flows.abs().sum(2) * static).sum() / static.sum().clamp(min=1)
+    flow_term = flow_moving + loss.static_flow_weight * flow_static
+    total = latent + loss.flow_weight * flow_term
+    with torch.no_grad():
+        copy = _latent_error(present.expand_as(target), target, weight, loss.gamma)
+    parts = {"latent": latent, "copy_latent": copy, "flow_moving": flow_moving, "flow_static": flow_static,
+             "total": total}
+    return total, {k: float(v.detach()) for k, v in parts.items()}

@@ -3,14 +3,37 @@
 They load from YAML/JSON with dotted overrides (:func:`t3fast.io.config.load_config`); the
 named ones are in :mod:`t3fast.presets`. A checkpoint stores its stage's config, so a run
 can be resumed, evaluated or read back without its preset.
+
+Each one refuses, when it is built, values that would crash a run late or quietly ruin it
+(a negative loss weight or gradient clip, a learning rate of zero): the :class:`ConfigError`
+names the dotted key and the value.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+from t3fast.data.sample import NUM_FUTURE
 from t3fast.errors import ConfigError
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
+
+
+def _at_least(section: str, cfg: object, lows: Mapping[str, int]) -> None:
+    """Counts: ``cfg.<key> >= low`` for each key."""
+    for key, low in lows.items():
+        value = getattr(cfg, key)
+        if value < low:
+            raise ConfigError(f"{section}{key} must be at least {low}, got {value}")
+
+
+def _weights(section: str, cfg: object, keys: tuple[str, ...], zero: str) -> None:
+    """Loss weights and learning-rate factors: finite and ``>= 0`` (a negative one ascends)."""
+    for key in keys:
+        value = getattr(cfg, key)
+        if not (math.isfinite(value) and value >= 0):
+            raise ConfigError(f"{section}{key} must be >= 0 ({zero}), got {value}")
 
 
 @dataclass
@@ -39,12 +62,17 @@ class TrainConfig:
     device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu"
 
     def __post_init__(self) -> None:
-        """Reject counts that would crash or silently do nothing later (e.g. a zero batch)."""
-        at_least = {"steps": 1, "batch_size": 1, "warmup_steps": 0, "log_every": 0, "eval_every": 0,
-                    "ckpt_every": 0, "num_workers": 0}
-        for key, low in at_least.items():
-            if getattr(self, key) < low:
-                raise ConfigError(f"train.{key} must be at least {low}, got {getattr(self, key)}")
+        """Reject counts and rates that would crash, do nothing or train backwards (e.g. a zero
+        batch, a negative gradient clip, a final learning rate above the peak)."""
+        _at_least("train.", self, {"steps": 1, "batch_size": 1, "warmup_steps": 0, "log_every": 0,
+                                   "eval_every": 0, "ckpt_every": 0, "num_workers": 0})
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ConfigError(f"train.lr must be a number > 0, got {self.lr}")
+        if not (math.isfinite(self.min_lr) and 0 <= self.min_lr <= self.lr):
+            raise ConfigError(f"train.min_lr must be between 0 and train.lr ({self.lr}), got {self.min_lr}")
+        _weights("train.", self, ("weight_decay",), "0 turns it off")
+        if self.grad_clip is not None and not self.grad_clip >= 0:  # also NaN
+            raise ConfigError(f"train.grad_clip must be >= 0 (0 disables clipping), got {self.grad_clip}")
 
 
 @dataclass
@@ -61,6 +89,9 @@ class FramesConfig:
     occ3d_train_info: str = ""  # info pickles
     occ3d_val_info: str = ""
 
+    def __post_init__(self) -> None:
+        _at_least("data.", self, {"val_stride": 1})
+
 
 @dataclass
 class LossConfig:
@@ -73,6 +104,10 @@ class LossConfig:
     num_occupied: int = 40_000  # all occupied voxels up to this many per frame
     num_near_free: int = 20_000  # free voxels next to a surface
     num_far_free: int = 10_000  # other free voxels
+
+    def __post_init__(self) -> None:
+        _weights("loss.", self, ("lovasz_weight",), "0 turns the term off")
+        _at_least("loss.", self, {"class_weight_frames": 1, "num_occupied": 0, "num_near_free": 0, "num_far_free": 0})
 
 
 @dataclass
@@ -105,6 +140,9 @@ class SequencesConfig:
     occ3d_train_info: str = ""
     occ3d_val_info: str = ""
 
+    def __post_init__(self) -> None:
+        _at_least("data.", self, {"val_stride": 1, "stride": 1})
+
 
 @dataclass
 class WorldLossConfig:
@@ -121,6 +159,12 @@ class WorldLossConfig:
     num_far_free: int = 2_000
     num_changed: int = 0  # more query points where the target differs from the present frame (what moved)
 
+    def __post_init__(self) -> None:
+        _weights("loss.", self, ("gamma", "xi", "action_weight", "lovasz_weight"), "0 turns the term off")
+        if not 1 <= self.rollout_steps <= NUM_FUTURE:
+            raise ConfigError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {self.rollout_steps}")
+        _at_least("loss.", self, {"num_occupied": 0, "num_near_free": 0, "num_far_free": 0, "num_changed": 0})
+
 
 @dataclass
 class Stage2Config:
@@ -135,3 +179,6 @@ class Stage2Config:
     data: SequencesConfig = field(default_factory=SequencesConfig)
     loss: WorldLossConfig = field(default_factory=WorldLossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        _weights("", self, ("decoder_lr_scale", "planner_lr_scale"), "0 freezes that part")

@@ -14,7 +14,8 @@ Files in ``out_dir`` (written by rank 0): ``last.pt`` (every ``ckpt_every`` step
 and on Ctrl-C), ``best.pt`` (whenever the evaluation score improves), ``metrics.jsonl`` (one
 ``{"event", "step", "time", "values"}`` object per log or evaluation), ``tb/`` (TensorBoard,
 when installed). A new run needs an empty ``out_dir``; ``resume`` continues the run there and
-``overwrite`` replaces it (:mod:`t3fast.training.run_dir`).
+``overwrite`` replaces it, keeping the old files until the new run has set up and written its
+first checkpoint, and putting them back if it fails before (:mod:`t3fast.training.run_dir`).
 
 Exact resume: a run resumed from ``last.pt`` takes the same steps as an uninterrupted one:
 same weights, optimiser and scheduler state, batches and random streams. Randomness inside
@@ -55,7 +56,7 @@ from t3fast.training.interrupt import StopRequest, ignore_sigint
 from t3fast.training.metrics_log import MetricsLog
 from t3fast.training.param_groups import param_groups
 from t3fast.training.random_state import derive_seed, preserved_rng, rng_state, seed_everything, set_rng_state
-from t3fast.training.run_dir import check_out_dir, clear_run
+from t3fast.training.run_dir import check_out_dir, drop_replaced, restore, set_aside
 from t3fast.training.schedule import warmup_cosine
 from t3fast.training.task import Task
 
@@ -79,8 +80,6 @@ class Trainer:
         check_out_dir(self.out_dir, cfg.resume, cfg.resume_from, cfg.overwrite)
         barrier()  # every rank has looked at out_dir before rank 0 writes to it
         if is_main():
-            if cfg.overwrite:
-                clear_run(self.out_dir)
             self.out_dir.mkdir(parents=True, exist_ok=True)
 
         seed_everything(cfg.seed)  # the same initial weights on every rank
@@ -119,6 +118,9 @@ class Trainer:
         self._reset_window()
         self._log = MetricsLog(self.out_dir, is_main(), cfg.tensorboard)
         self._maybe_resume()
+        # overwrite: the old run moves aside only now that the new one is set up (a missing data
+        # file, a bad init_from or a model too large leaves it untouched); see _save and fit
+        self._replacing = bool(cfg.overwrite and is_main() and set_aside(self.out_dir))
 
     # ---- the loop -------------------------------------------------------------------------
 
@@ -128,7 +130,20 @@ class Trainer:
         The result holds ``step``, ``best_score``, the last train log as ``train/<name>`` and
         the last evaluation as ``eval/<name>``. Ctrl-C stops after the current step, writes
         ``last.pt`` and returns (``self.interrupted`` is then True); a second Ctrl-C aborts.
+        With ``overwrite``, an error before the first checkpoint puts the replaced run back.
         """
+        try:
+            self._fit()
+        except BaseException:
+            if self._replacing:  # failed before its first checkpoint: the replaced run comes back
+                restore(self.out_dir)
+                self._replacing = False
+                log.warning("the run failed before its first checkpoint; restored the run it replaced in %s",
+                            self.out_dir)
+            raise
+        return self._result()
+
+    def _fit(self) -> None:
         self._log.open(self.cfg.steps, self.step)
         self._reset_window()
         batches = self._batches()
@@ -149,7 +164,6 @@ class Trainer:
         finally:
             batches.close()
             self._log.close()
-        return self._result()
 
     def _train_step(self, batch: Any) -> None:
         batch = _to_device(batch, self.device)
@@ -159,7 +173,7 @@ class Trainer:
         self.scaler.scale(loss).backward()
         logs = {"loss": float(loss.detach()), **{k: float(v) for k, v in values.items()}}
         logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
-        if self.cfg.grad_clip is not None:
+        if self.cfg.grad_clip:  # None or 0: no clipping
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
             logs["grad_norm"] = float(nn.utils.clip_grad_norm_(self.module.parameters(), self.cfg.grad_clip))
         self.scaler.step(self.optimizer)
@@ -244,6 +258,9 @@ class Trainer:
         rng = all_gather_object(rng_state(self.device))
         if is_main():
             save_checkpoint(self._state(rng), self.out_dir / name)
+            if self._replacing:  # the new run has started: the run it replaces goes
+                drop_replaced(self.out_dir)
+                self._replacing = False
         if name == "last.pt":
             self._last_ckpt_step = self.step
 

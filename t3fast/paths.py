@@ -36,6 +36,21 @@ def inside(root: str | Path, *parts: str) -> Path:
     return path
 
 
+def output_path(root: str | Path, *parts: str) -> Path:
+    """``root / parts`` as a file or folder to write: it must resolve inside ``root`` and no
+    component below ``root`` may be a symbolic link (one left in an output folder would
+    redirect the write anywhere). Raises :class:`~t3fast.errors.UsageError`."""
+    root = Path(root)
+    path = root
+    for part in parts:
+        path = path / part
+        if path.is_symlink():
+            raise UsageError(f"{path} is a symbolic link: not writing through it (remove it or choose another --out)")
+    if not path.resolve().is_relative_to(root.resolve()):
+        raise UsageError(f"{path} would lie outside {root}")
+    return path
+
+
 def output_dir(path: str | Path) -> Path:
     """``path`` as an output folder: absent (it will be created) or a folder, never a file.
 
@@ -44,6 +59,20 @@ def output_dir(path: str | Path) -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UsageError(f"--out {path} is a file, not a folder")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise UsageError(f"--out {path}: {parent} is a file, not a folder")
+            break
+    return path
+
+
+def output_file(path: str | Path, kind: str = "file") -> Path:
+    """``path`` as an output file (``--out``, naming the ``kind`` written): not a folder, and
+    the nearest existing folder above it really a folder. Checked before a command does any work."""
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"--out {path} is a folder; it names the {kind} to write")
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():

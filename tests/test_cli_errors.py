@@ -63,6 +63,7 @@ def test_checkpoint_kinds_are_named(tmp_path, stage1_ckpt, capsys):
          "argument --pictures: must be at least 0, got -1"),
         (["demo", "--scenes", "0"], "argument --scenes: must be at least 1, got 0"),
         (["demo", "--stride", "0"], "argument --stride: must be at least 1, got 0"),
+        (["data", "stats", "--stride", "0"], "argument --stride: must be at least 1, got 0"),
     ],
 )
 def test_bad_numbers_are_refused_by_the_parser(argv, message, capsys):
@@ -83,6 +84,31 @@ def test_out_must_be_a_folder(tmp_path, capsys):
     assert one_line(capsys) == f"t3fast forecast: --data {out} is not a folder"
     assert main(["forecast", "--data", str(tmp_path), "--ckpt", SHIPPED_WM, "--out", str(tmp_path / "o")]) == 2
     assert one_line(capsys) == f"t3fast forecast: found 0 info pickles in {tmp_path}; pass --info"
+
+
+def test_outputs_are_checked_before_any_work(tmp_path, capsys, monkeypatch, stage1_ckpt):
+    import t3fast.commands.evaluate as commands
+    from t3fast.data.synthetic.dataset import SyntheticScenes
+    from t3fast.io import checkpoint
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("did work before checking --out")
+
+    monkeypatch.setattr(commands, "load_models", refuse)
+    monkeypatch.setattr(SyntheticScenes, "generate", refuse)
+    monkeypatch.setattr(checkpoint, "read_checkpoint", refuse)
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert main(["demo", "--out", str(afile)]) == 2
+    assert one_line(capsys) == f"t3fast demo: --out {afile} is a file, not a folder"
+    assert main(["demo", "--out", str(afile / "sub")]) == 2
+    assert one_line(capsys) == f"t3fast demo: --out {afile / 'sub'}: {afile} is a file, not a folder"
+    assert main(["view", "--synthetic", "test:0", "--out", str(afile / "v.html")]) == 2
+    assert one_line(capsys) == f"t3fast view: --out {afile / 'v.html'}: {afile} is a file, not a folder"
+    assert main(["view", "--synthetic", "test:0", "--out", str(tmp_path)]) == 2
+    assert one_line(capsys) == f"t3fast view: --out {tmp_path} is a folder; it names the HTML file to write"
+    assert main(["eval-ae", str(stage1_ckpt), "--out", str(afile / "deeper" / "m.json")]) == 2
+    assert one_line(capsys) == f"t3fast eval-ae: --out {afile / 'deeper' / 'm.json'}: {afile} is a file, not a folder"
 
 
 def test_debug_shows_the_traceback(tmp_path, capsys):

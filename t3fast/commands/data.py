@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from t3fast.commands.args import positive_int
 from t3fast.errors import UsageError
 
 #: the longest side of a ``data render`` picture, in pixels (a 6-frame strip at --scale 6 is 7220 wide)
@@ -23,6 +24,8 @@ def add_data_commands(sub: argparse._SubParsersAction) -> None:
 
     exp = cmds.add_parser("export-synthetic", help="write synthetic scenes in the Occ3D-nuScenes layout")
     exp.add_argument("--out", required=True, help="output directory (gets gts/ and the info pickle)")
+    exp.add_argument("--overwrite", action="store_true",
+                     help="replace an earlier export of the split in --out (its info file and frames, nothing else)")
     exp.add_argument("--scenes", type=int, default=10, help="number of scenes")
     exp.add_argument("--split", default="train", choices=["train", "val", "test"])
     exp.add_argument("--frames", type=int, default=40, help="2 Hz frames per scene (11 to 1000)")
@@ -32,7 +35,7 @@ def add_data_commands(sub: argparse._SubParsersAction) -> None:
     _add_source_args(stats)
     stats.add_argument("--occ3d", type=Path,
                        help="profile every labels.npz under this Occ3D folder instead (no info file needed)")
-    stats.add_argument("--stride", type=int, default=5, help="window stride for the motion summary")
+    stats.add_argument("--stride", type=positive_int, default=5, help="window stride for the motion summary")
     stats.set_defaults(func=_stats)
 
     render = cmds.add_parser("render", help="render a sample's frames as a top-down PNG strip")
@@ -80,11 +83,31 @@ def _dataset(args: argparse.Namespace, stride: int):
     return SyntheticDriving(args.split, args.scenes, args.frames_per_scene, stride=stride)
 
 
+def _export_out(args: argparse.Namespace) -> Path:
+    """``--out`` of export-synthetic, checked before any scene is generated: a folder that holds
+    an earlier export of the split, or files no export wrote, needs ``--overwrite``; with it the
+    earlier export of the split is to be deleted (other files and other splits' exports stay)."""
+    from t3fast.data.export import existing_export, foreign_entries
+    from t3fast.paths import output_dir
+
+    out = output_dir(args.out)
+    found = [p.relative_to(out).as_posix() for p in existing_export(out, args.split)] + foreign_entries(out)
+    if found and not args.overwrite:
+        shown = ", ".join(found[:5]) + (", ..." if len(found) > 5 else "")
+        raise UsageError(f"--out {out} is not empty ({shown}): pass --overwrite to replace the {args.split} export "
+                         "there (it deletes only the info file and frames an export wrote)")
+    return out
+
+
 def _export(args: argparse.Namespace) -> int:
-    from t3fast.data.export import export_synthetic
+    from t3fast.data.export import export_synthetic, remove_export
+
+    out = _export_out(args)
 
     _check_synthetic(args.scenes, args.frames, "--frames")
     start = time.perf_counter()
+    if args.overwrite:
+        remove_export(out, args.split)  # only now that every argument has been checked
     info = export_synthetic(args.out, args.split, args.scenes, args.frames)
     print(f"wrote {args.scenes} scenes to {args.out} ({time.perf_counter() - start:.1f} s); info: {info}")
     return 0

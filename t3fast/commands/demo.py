@@ -20,6 +20,7 @@ import torch
 
 from t3fast.commands.args import non_negative_int, positive_int
 from t3fast.errors import UsageError
+from t3fast.paths import output_dir
 from t3fast.presets import shipped_world_models
 from t3fast.pretrained import SHIPPED_DIR
 
@@ -72,6 +73,7 @@ def _demo(args: argparse.Namespace) -> int:
     from t3fast.evaluation.report import evaluate_methods, metrics_markdown, write_report
     from t3fast.viz.index_page import write_index
 
+    output_dir(args.out)  # before any model runs
     start = time.perf_counter()
     device = default_device()
     models = load_models(checkpoint_paths(args.ckpt_dir), device)

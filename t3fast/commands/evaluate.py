@@ -13,7 +13,7 @@ import torch
 from t3fast.commands.args import non_negative_int, positive_int
 from t3fast.device import default_device
 from t3fast.errors import DataFormatError, T3fastError, UsageError
-from t3fast.paths import check_name, inside, output_dir
+from t3fast.paths import check_name, output_dir, output_file, output_path
 
 
 def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
@@ -112,6 +112,24 @@ def _trajectory_json(plan: np.ndarray, where: str) -> str:
     return json.dumps({"planned": plan.tolist(), "seconds": seconds}, allow_nan=False)
 
 
+def _forecast_paths(out_root: Path, dataset, index: int, pictures: bool) -> dict[str, Path]:
+    """Where window ``index``'s forecast goes, each path checked where it will be written: inside
+    ``out_root``, with no symbolic link on the way (one left in an earlier output would redirect it)."""
+    from t3fast.data.sample import NUM_FUTURE, PRESENT
+
+    scene, start = dataset.index[index]
+    token = dataset.infos[scene][start + PRESENT]["token"]
+    where = (check_name(scene, "scene name"), check_name(token, "token"))
+    paths = {"folder": output_path(out_root, *where), "trajectory": output_path(out_root, *where, "trajectory.json")}
+    for k in range(1, NUM_FUTURE + 1):
+        output_path(out_root, *where, f"future_{k}")
+        paths[f"future_{k}"] = output_path(out_root, *where, f"future_{k}", "labels.npz")
+    if pictures:
+        for suffix in (".png", ".gif", ".html"):
+            paths[suffix] = output_path(out_root, *where, f"forecast{suffix}")
+    return paths
+
+
 def _forecast(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -129,22 +147,24 @@ def _forecast(args: argparse.Namespace) -> int:
     dataset = Occ3DNuScenes(args.data, info, stride=args.stride)
     if len(dataset) == 0:
         raise DataFormatError(f"{info}: nothing to forecast: no scene has the 11 frames a window needs")
+    for i in range(len(dataset)):  # every output path, before the model runs
+        _forecast_paths(out_root, dataset, i, i < args.pictures)
     device = default_device()
     model = load_world_model(args.ckpt, device)
     for i in tqdm(range(len(dataset)), desc="forecast", unit="window"):
         sample = dataset[i]
         labels, plan = forecast_window(model, sample)
         token = dataset.infos[sample.scene][sample.start + PRESENT]["token"]
-        folder = inside(out_root, check_name(sample.scene, "scene name"), check_name(token, "token"))
+        paths = _forecast_paths(out_root, dataset, i, i < args.pictures)  # again: the folder may have changed
         trajectory = _trajectory_json(plan, f"scene {sample.scene!r} token {token!r}")  # before writing anything
         for k, frame in enumerate(labels):
-            (folder / f"future_{k + 1}").mkdir(parents=True, exist_ok=True)
-            np.savez_compressed(folder / f"future_{k + 1}" / "labels.npz", semantics=frame)
-        (folder / "trajectory.json").write_text(trajectory)
+            paths[f"future_{k + 1}"].parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(paths[f"future_{k + 1}"], semantics=frame)
+        paths["trajectory"].write_text(trajectory)
         if i < args.pictures:
-            save_forecast_pictures(folder / "forecast", sample.past_occ.numpy(), labels, sample.future_occ.numpy(),
-                                   plan, sample.trajectory.numpy())
-            write_window_viewer(folder / "forecast.html", sample, labels, plan, f"forecast, {sample.scene} {token}")
+            save_forecast_pictures(paths["folder"] / "forecast", sample.past_occ.numpy(), labels,
+                                   sample.future_occ.numpy(), plan, sample.trajectory.numpy())
+            write_window_viewer(paths[".html"], sample, labels, plan, f"forecast, {sample.scene} {token}")
     print(f"wrote {len(dataset)} forecasts under {args.out}")
     return 0
 
@@ -158,8 +178,8 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.models.autoencoder import TriplaneAutoencoder
     from t3fast.training.configs import Stage1Config
 
-    if args.out is not None and args.out.is_dir():
-        raise UsageError(f"--out {args.out} is a folder; it names the JSON file to write")
+    if args.out is not None:
+        output_file(args.out, "JSON file")
     state = read_checkpoint(args.ckpt, AUTOENCODER)
     cfg = load_config(Stage1Config, state["config"]["task"])
     model = TriplaneAutoencoder(cfg.model)

@@ -9,6 +9,7 @@ from pathlib import Path
 from t3fast.commands.args import non_negative_int
 from t3fast.data.sample import WINDOW
 from t3fast.errors import UsageError
+from t3fast.paths import output_file
 
 
 def add_view_command(sub: argparse._SubParsersAction) -> None:
@@ -54,8 +55,7 @@ def _window(args: argparse.Namespace):
 def _view(args: argparse.Namespace) -> int:
     from t3fast.viz.viewer import write_window_viewer
 
-    if args.out.is_dir():
-        raise UsageError(f"--out {args.out} is a folder; it names the HTML file to write")
+    output_file(args.out, "HTML file")
     sample, title = _window(args)
     title = f"{title}, frames {sample.start}-{sample.start + WINDOW - 1}"
     predicted = plan = None

@@ -7,11 +7,16 @@ Output::
 
 ``mask_lidar`` is written equal to ``mask_camera`` (one ray-cast visibility). Boxes and
 trajectories are in each frame's ego coordinates, so no ``lidar2ego`` keys are written.
+
+Exports of different splits can share a folder; another export of the same split first
+needs the old one removed (:func:`remove_export`), or its frames would be left stale.
 """
 
 from __future__ import annotations
 
+import os
 import pickle
+import re
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +30,66 @@ FUTURE_STEPS = 6
 
 def info_filename(split: str) -> str:
     return f"synthetic_infos_{split}.pkl"
+
+
+def _scene_pattern(split: str) -> re.Pattern[str]:
+    """The names of the scene folders an export of ``split`` writes under ``gts/``."""
+    return re.compile(rf"synthetic-{re.escape(split)}-\d{{5,}}")
+
+
+def _is_folder(path: Path) -> bool:
+    return path.is_dir() and not path.is_symlink()
+
+
+def existing_export(out: str | Path, split: str) -> list[Path]:
+    """What an earlier export of ``split`` left in ``out``: its info file and its scene folders."""
+    out = Path(out)
+    found = [out / info_filename(split)] if os.path.lexists(out / info_filename(split)) else []
+    if _is_folder(out / "gts"):
+        pattern = _scene_pattern(split)
+        found += sorted(p for p in (out / "gts").iterdir() if pattern.fullmatch(p.name))
+    return found
+
+
+def foreign_entries(out: str | Path) -> list[str]:
+    """The entries of ``out`` that no export (of any split) writes."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    infos = {info_filename(split) for split in ("train", "val", "test")}
+    scenes = [_scene_pattern(split) for split in ("train", "val", "test")]
+    names = [p.name for p in out.iterdir() if p.name not in infos and p.name != "gts"]
+    if (out / "gts").exists():
+        if not _is_folder(out / "gts"):
+            names.append("gts")
+        else:
+            names += [f"gts/{p.name}" for p in (out / "gts").iterdir()
+                      if not (_is_folder(p) and any(s.fullmatch(p.name) for s in scenes))]
+    return sorted(names)
+
+
+def remove_export(out: str | Path, split: str) -> None:
+    """Delete what an export of ``split`` wrote into ``out`` (the info file, every
+    ``gts/<scene>/<token>/labels.npz`` and the folders left empty) and nothing else."""
+    out = Path(out)
+    info = out / info_filename(split)
+    if os.path.lexists(info):
+        info.unlink()
+    for scene in existing_export(out, split):
+        if not _is_folder(scene):
+            continue
+        tokens = re.compile(rf"{re.escape(scene.name)}-\d{{3,}}")
+        for frame in scene.iterdir():
+            if tokens.fullmatch(frame.name) and _is_folder(frame):
+                (frame / "labels.npz").unlink(missing_ok=True)
+                _remove_if_empty(frame)
+        _remove_if_empty(scene)
+    _remove_if_empty(out / "gts")
+
+
+def _remove_if_empty(folder: Path) -> None:
+    if _is_folder(folder) and not any(folder.iterdir()):
+        folder.rmdir()
 
 
 def _yaw_quaternion(yaw: float) -> list[float]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -20,21 +21,52 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> None:
     """Write ``state`` with ``torch.save`` so that ``path`` holds either the old or the new file.
 
     The data goes to a temporary file in the same directory (``os.replace`` is atomic only
-    within one file system), is flushed and fsynced, then renamed over ``path``.
+    within one file system), is flushed and fsynced, then renamed over ``path``. The file gets
+    the permissions ``torch.save`` would give it: those of the file it replaces, else
+    ``0o666`` less the umask (``mkstemp`` alone would make it private to its owner).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    mode = file_mode(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             torch.save(state, f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:  # also KeyboardInterrupt: never leave the temporary file behind
         Path(tmp).unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)
+
+
+def file_mode(path: str | Path) -> int:
+    """The permission bits a plain ``open(path, "w")`` would leave ``path`` with: those of the
+    file already there, else ``0o666`` less the umask. For writers that go through ``mkstemp``."""
+    try:
+        st = os.stat(path)
+        if stat.S_ISREG(st.st_mode):
+            return stat.S_IMODE(st.st_mode)
+    except OSError:
+        pass
+    return 0o666 & ~current_umask()
+
+
+def current_umask() -> int:
+    """The process umask. Read from ``/proc`` where there is one: setting it to read it back
+    (``os.umask``) would change it for every thread for a moment."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o077)  # the strictest value while it is swapped out
+    os.umask(mask)
+    return mask
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device | None = "cpu") -> dict[str, Any]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -38,3 +40,25 @@ def test_failed_write_keeps_the_old_checkpoint(
     monkeypatch.undo()
     assert load_checkpoint(path)["step"] == 1
     assert [p.name for p in tmp_path.iterdir()] == ["last.pt"]
+
+
+@pytest.mark.parametrize(("umask", "mode"), [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
+def test_new_checkpoints_respect_the_umask(tmp_path: Path, umask: int, mode: int) -> None:
+    old = os.umask(umask)
+    try:
+        assert ckpt.current_umask() == umask
+        save_checkpoint({"step": 1}, tmp_path / "last.pt")
+        with open(tmp_path / "plain", "wb") as f:  # what torch.save(path) would get
+            f.write(b"")
+    finally:
+        os.umask(old)
+    written = {name: stat.S_IMODE((tmp_path / name).stat().st_mode) for name in ("last.pt", "plain")}
+    assert written == {"last.pt": mode, "plain": mode}
+
+
+def test_a_replaced_checkpoint_keeps_its_permissions(tmp_path: Path) -> None:
+    path = tmp_path / "best.pt"
+    save_checkpoint({"step": 1}, path)
+    path.chmod(0o640)
+    save_checkpoint({"step": 2}, path)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o640 and load_checkpoint(path)["step"] == 2

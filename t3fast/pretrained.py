@@ -5,15 +5,26 @@ timm's pretrained names); anything else is a path to a checkpoint that ``t3fast 
 ``t3fast train-ae`` wrote (``best.pt``, ``last.pt``) or ``t3fast export`` slimmed. Only the
 model parts of a checkpoint's config are read, so checkpoints of every earlier version load
 and inference never imports the training stack.
+
+Every command that turns a checkpoint into a model does it here, and nothing is allocated
+before the checkpoint is known to fit its config: the config's values are checked (a
+:class:`~t3fast.errors.ConfigError` names the file, the key and the value), the model is
+built on the ``meta`` device (shapes only, no memory) and its parameter count bounded by
+:data:`MAX_PARAMETERS`, and every weight of the checkpoint is compared with the one the
+config builds (a :class:`~t3fast.errors.CheckpointError` names the file, the weight and
+both shapes) before the real model is built and loaded.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any, TypeVar
 
 import torch
+from torch import nn
 
-from t3fast.errors import CheckpointError
+from t3fast.errors import CheckpointError, ConfigError
 from t3fast.io.checkpoint import AUTOENCODER, WORLD_MODEL, checkpoint_kind, read_checkpoint
 from t3fast.io.config import load_config
 from t3fast.models.autoencoder import TriplaneAutoencoder
@@ -21,6 +32,12 @@ from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.world_model import T3Former
 
 SHIPPED_DIR = Path(__file__).parent / "checkpoints"
+
+#: a config that builds more parameters than this is refused (the papers' model has ~1e7)
+MAX_PARAMETERS = 2_000_000_000
+
+M = TypeVar("M", bound=nn.Module)
+C = TypeVar("C")
 
 
 def shipped_names() -> list[str]:
@@ -44,27 +61,115 @@ def resolve(name_or_path: str | Path) -> Path:
 def load_world_model(name_or_path: str | Path, device: torch.device | str = "cpu") -> T3Former:
     """A trained :class:`T3Former` in eval mode on ``device``, from a shipped name
     (:func:`shipped_names`) or a stage-2 checkpoint path. Its sizes are in
-    ``model.autoencoder_config`` and ``model.world_config``."""
-    state = read_checkpoint(resolve(name_or_path), WORLD_MODEL)
-    task = state["config"]["task"]
-    model = T3Former.from_config(load_config(AutoencoderConfig, task["autoencoder"]),
-                                 load_config(WorldModelConfig, task["model"]))
-    model.load_state_dict(state["model"])
-    return model.to(device).eval()
+    ``model.autoencoder_config`` and ``model.world_config``. A checkpoint that does not fit its
+    config is refused (:class:`~t3fast.errors.CheckpointError`,
+    :class:`~t3fast.errors.ConfigError`) before the model is allocated."""
+    path = resolve(name_or_path)
+    return world_model_from_checkpoint(read_checkpoint(path, WORLD_MODEL), path).to(device).eval()
 
 
 def load_autoencoder(name_or_path: str | Path, device: torch.device | str = "cpu") -> TriplaneAutoencoder:
     """A trained :class:`TriplaneAutoencoder` in eval mode on ``device``, from a stage-1
-    checkpoint, or the encoder and decoder of a world model (shipped name or stage-2 path)."""
+    checkpoint, or the encoder and decoder of a world model (shipped name or stage-2 path);
+    checked as :func:`load_world_model` checks."""
     path = resolve(name_or_path)
-    state = read_checkpoint(path, (AUTOENCODER, WORLD_MODEL))
-    task = state["config"]["task"]
+    return autoencoder_from_checkpoint(read_checkpoint(path, (AUTOENCODER, WORLD_MODEL)), path).to(device).eval()
+
+
+def world_model_from_checkpoint(state: dict[str, Any], path: str | Path) -> T3Former:
+    """The :class:`T3Former` (on the CPU) of a stage-2 checkpoint ``state`` read from ``path``
+    (:func:`~t3fast.io.checkpoint.read_checkpoint`), checked as the module says."""
+    autoencoder = checkpoint_config(AutoencoderConfig, state, path, "autoencoder")
+    world = checkpoint_config(WorldModelConfig, state, path, "model")
+    return build_checked(lambda: T3Former.from_config(autoencoder, world), state["model"], path,
+                         lambda key: "task.autoencoder" if key.split(".", 1)[0] in ("encoder", "decoder")
+                         else "task.model")
+
+
+def autoencoder_from_checkpoint(state: dict[str, Any], path: str | Path) -> TriplaneAutoencoder:
+    """The :class:`TriplaneAutoencoder` (on the CPU) of a stage-1 checkpoint, or the encoder and
+    decoder of a stage-2 one, checked as the module says."""
     if checkpoint_kind(state) == WORLD_MODEL:
-        config = load_config(AutoencoderConfig, task["autoencoder"])
+        key = "autoencoder"
         weights = {k: v for k, v in state["model"].items() if k.split(".", 1)[0] in ("encoder", "decoder")}
     else:
-        config, weights = load_config(AutoencoderConfig, task["model"]), state["model"]
-    model = TriplaneAutoencoder(config)
-    model.load_state_dict(weights)
-    return model.to(device).eval()
+        key, weights = "model", state["model"]
+    config = checkpoint_config(AutoencoderConfig, state, path, key)
+    return build_checked(lambda: TriplaneAutoencoder(config), weights, path, lambda _: f"task.{key}")
 
+
+def checkpoint_config(cls: type[C], state: dict[str, Any], path: str | Path, key: str | None = None) -> C:
+    """``cls`` from the checkpoint's ``config.task`` (or its section ``key``); a missing or
+    invalid section raises :class:`~t3fast.errors.ConfigError` naming the file and the key."""
+    task = state["config"]["task"]
+    where = "task" if key is None else f"task.{key}"
+    source = task if key is None else task.get(key)
+    if source is None:
+        raise ConfigError(f"{path}: its config has no '{where}' (the sizes of the model to build)")
+    if not isinstance(source, Mapping):
+        raise ConfigError(f"{path}: config '{where}' must be a mapping of {cls.__name__} fields, "
+                          f"got a {type(source).__name__}")
+    try:
+        return load_config(cls, source)
+    except ValueError as exc:  # ConfigError, or a check of the config's own
+        raise ConfigError(f"{path}: config '{where}': {exc}") from None
+
+
+def build_checked(build: Callable[[], M], weights: Mapping[str, Any], path: str | Path,
+                  section: Callable[[str], str]) -> M:
+    """``build()`` loaded with ``weights``, once they are known to fit it.
+
+    ``build`` runs first on the ``meta`` device; the model it describes must have at most
+    :data:`MAX_PARAMETERS` numbers and exactly the weights' names and shapes (``section``
+    names the config section a weight's sizes come from, for the message). Only then is the
+    real model built (on the CPU) and the weights loaded into it.
+    """
+    try:
+        with torch.device("meta"):
+            skeleton = build()
+    except (ValueError, TypeError, RuntimeError, AssertionError) as exc:  # a combination the config checks miss
+        reason = (str(exc).strip().splitlines() or [""])[0]
+        raise ConfigError(f"{path}: its config builds no model ({type(exc).__name__}: {reason})") from exc
+    expected = skeleton.state_dict()
+    count = sum(t.numel() for t in expected.values())
+    if count > MAX_PARAMETERS:
+        key, largest = max(expected.items(), key=lambda item: item[1].numel())
+        raise ConfigError(f"{path}: its config builds a model of {count:,} parameters, more than the "
+                          f"{MAX_PARAMETERS:,} loaded; the largest, {key!r} {list(largest.shape)}, is sized by "
+                          f"config '{section(key)}'")
+    check_weights(skeleton, expected, weights, path, section)
+    model = build()
+    model.load_state_dict(weights)
+    return model
+
+
+def check_weights(skeleton: nn.Module, expected: Mapping[str, torch.Tensor], weights: Mapping[str, Any],
+                  path: str | Path, section: Callable[[str], str]) -> None:
+    """Raises :class:`~t3fast.errors.CheckpointError` naming the first weight that is missing,
+    unexpected, not a floating-point tensor where the model has one, or of another shape than
+    the model built from the config (``expected``, the state_dict of ``skeleton``), and how
+    many weights are wrong in all."""
+    weights = dict(weights)
+    for prefix, module in skeleton.named_modules():  # names of earlier versions, as loading renames them
+        upgrade = getattr(module, "upgrade_state_dict", None)
+        if upgrade is not None:
+            upgrade(weights, f"{prefix}." if prefix else "")
+    problems = []
+    for key, want in expected.items():
+        if key not in weights:
+            problems.append(f"weight {key!r} is missing (the config '{section(key)}' builds it with shape "
+                            f"{list(want.shape)})")
+            continue
+        got = weights[key]
+        if not isinstance(got, torch.Tensor):
+            problems.append(f"weight {key!r} is a {type(got).__name__}, not a tensor")
+        elif want.is_floating_point() and not got.is_floating_point():
+            problems.append(f"weight {key!r} has dtype {got.dtype}, not a floating-point one")
+        elif got.shape != want.shape:
+            problems.append(f"weight {key!r} has shape {list(got.shape)} but the config '{section(key)}' "
+                            f"builds {list(want.shape)}")
+    problems += [f"weight {key!r} is not part of the model its config '{section(str(key))}' builds"
+                 for key in weights if key not in expected]
+    if problems:
+        more = f" (and {len(problems) - 1} more wrong weights)" if len(problems) > 1 else ""
+        raise CheckpointError(f"{path}: {problems[0]}{more}")

@@ -130,3 +130,87 @@ def test_bugs_keep_their_traceback(monkeypatch):
     monkeypatch.setattr(commands, "load_models", broken)
     with pytest.raises(RuntimeError, match="a bug"):
         main(["eval", SHIPPED_WM])
+
+
+def _spoiled(tmp_path, spoil, name="wm.pt"):
+    from t3fast.io.checkpoint import load_checkpoint
+
+    state = load_checkpoint(SHIPPED_WM)
+    spoil(state)
+    save_checkpoint(state, tmp_path / name)
+    return tmp_path / name
+
+
+HEAD = "forecaster.predictors.xy.head.weight"
+WRONG_SHAPE = (lambda s: s["model"].__setitem__(HEAD, torch.zeros(8, 32, 1, 1)),
+               f"weight '{HEAD}' has shape [8, 32, 1, 1] but the config 'task.model' builds [8, 16, 1, 1]")
+NO_AUTOENCODER = (lambda s: s["config"]["task"].pop("autoencoder"),
+                  "its config has no 'task.autoencoder' (the sizes of the model to build)")
+BAD_HEADS = (lambda s: s["config"]["task"]["model"].update(planner_heads=7),
+             "config 'task.model': 'planner_heads' (7) must divide 'd_act' (50)")
+
+
+@pytest.mark.parametrize(
+    ("spoil", "message"),
+    [
+        WRONG_SHAPE,
+        (lambda s: s["model"].pop("planner.fc.weight"),
+         "weight 'planner.fc.weight' is missing (the config 'task.model' builds it with shape [50, 50])"),
+        (lambda s: s["model"].__setitem__("planner.extra", torch.zeros(2)),
+         "weight 'planner.extra' is not part of the model its config 'task.model' builds"),
+        NO_AUTOENCODER,
+        (lambda s: s["config"]["task"].__setitem__("model", [1, 2]),
+         "config 'task.model' must be a mapping of WorldModelConfig fields, got a list"),
+        BAD_HEADS,
+        (lambda s: s["config"]["task"]["autoencoder"].update(channels=-8),
+         "config 'task.autoencoder': 'channels' must be an integer in [1, 65536], got -8"),
+        (lambda s: s["model"].__setitem__("planner.fc.weight", "a string"),
+         "weight 'planner.fc.weight' is a str, not a tensor"),
+    ],
+)
+def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_eval(tmp_path, capsys, spoil, message):
+    path = _spoiled(tmp_path, spoil)
+    assert main(["eval", str(path), "--scenes", "1"]) == 1
+    assert one_line(capsys) == f"t3fast eval: {path}: {message}"
+
+
+def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_eval_ae_and_export(tmp_path, capsys):
+    def stage1(extra):
+        def spoil(state):
+            task = state["config"]["task"]
+            state["model"] = {k: v for k, v in state["model"].items() if k.startswith(("encoder.", "decoder."))}
+            state["config"]["task"] = {**config_to_dict(Stage1Config()), "model": task["autoencoder"]}
+            extra(state)
+        return spoil
+
+    path = _spoiled(tmp_path, stage1(lambda s: s["model"].__setitem__("decoder.mlp.0.weight", torch.zeros(128, 9))))
+    assert main(["eval-ae", str(path), "--scenes", "1"]) == 1
+    assert one_line(capsys) == (f"t3fast eval-ae: {path}: weight 'decoder.mlp.0.weight' has shape [128, 9] but "
+                                "the config 'task.model' builds [128, 68]")
+    path = _spoiled(tmp_path, stage1(lambda s: s["config"]["task"]["model"].update(decoder_hidden=[20000, 20000])))
+    assert main(["eval-ae", str(path), "--scenes", "1"]) == 1
+    assert one_line(capsys) == (f"t3fast eval-ae: {path}: weight 'decoder.mlp.0.weight' has shape [128, 68] but "
+                                "the config 'task.model' builds [20000, 68] (and 4 more wrong weights)")
+    path = _spoiled(tmp_path, stage1(lambda s: s["config"]["task"].__setitem__("model", "small")))
+    assert main(["eval-ae", str(path), "--scenes", "1"]) == 1
+    assert one_line(capsys) == (f"t3fast eval-ae: {path}: config 'task.model' must be a mapping of "
+                                "AutoencoderConfig fields, got a str")
+
+    path = _spoiled(tmp_path, lambda s: s["model"].__setitem__("planner.fc.weight", "a string"))
+    assert main(["export", str(path), str(tmp_path / "out.pt")]) == 1
+    assert one_line(capsys) == f"t3fast export: {path}: weight 'planner.fc.weight' is a str, not a tensor"
+    assert not (tmp_path / "out.pt").exists()
+
+
+@pytest.mark.parametrize("spoil_message", [WRONG_SHAPE, NO_AUTOENCODER, BAD_HEADS])
+def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_forecast(tmp_path, capsys, spoil_message):
+    from t3fast.data.export import export_synthetic
+
+    spoil, message = spoil_message
+    root = tmp_path / "occ3d"
+    info = export_synthetic(root, "val", 1, 11, progress=False)
+    path = _spoiled(tmp_path, spoil)
+    out = tmp_path / "out"
+    assert main(["forecast", "--data", str(root), "--info", str(info), "--ckpt", str(path), "--out", str(out)]) == 1
+    assert one_line(capsys) == f"t3fast forecast: {path}: {message}"
+    assert not list(out.rglob("*.npz"))

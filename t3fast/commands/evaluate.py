@@ -174,28 +174,27 @@ def _eval_ae(args: argparse.Namespace) -> int:
     from t3fast.device import default_device
     from t3fast.evaluation.reconstruction import evaluate_reconstruction
     from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
-    from t3fast.io.config import load_config
-    from t3fast.models.autoencoder import TriplaneAutoencoder
+    from t3fast.pretrained import autoencoder_from_checkpoint, checkpoint_config
     from t3fast.training.configs import Stage1Config
 
     if args.out is not None:
         output_file(args.out, "JSON file")
     state = read_checkpoint(args.ckpt, AUTOENCODER)
-    cfg = load_config(Stage1Config, state["config"]["task"])
-    model = TriplaneAutoencoder(cfg.model)
-    model.load_state_dict(state["model"])
+    model = autoencoder_from_checkpoint(state, args.ckpt)  # its weights checked against its config
+    cfg = checkpoint_config(Stage1Config, state, args.ckpt)
     device = default_device()
     model.to(device)
     frames = SyntheticFrames(args.split, args.scenes, cfg.data.frames_per_scene)
     indices = list(range(0, len(frames), args.stride))
     metrics = evaluate_reconstruction(model, frames, indices, device=device)
     summary = metrics.summary()
-    print(f"reconstruction, synthetic {args.split}: {args.scenes} scenes, {len(indices)} frames, step {state['step']}")
+    print(f"reconstruction, synthetic {args.split}: {args.scenes} scenes, {len(indices)} frames, "
+          f"step {state.get('step')}")
     print(metrics.table())
     print(f"mIoU (classes without ground truth skipped): {100 * metrics.miou(absent='skip'):.2f}")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        summary.update(step=state["step"], split=args.split, frames=len(indices), latent=cfg.model.latent,
+        summary.update(step=state.get("step"), split=args.split, frames=len(indices), latent=cfg.model.latent,
                        latent_size=cfg.model.latent_size)
         args.out.write_text(json.dumps(summary, indent=2))
     return 0

@@ -97,7 +97,9 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
     several kinds).
 
     Raises :class:`~t3fast.errors.CheckpointError` saying what the file is when it is missing,
-    unreadable, not a t3fast checkpoint, or a checkpoint of the other stage.
+    unreadable, not a t3fast checkpoint, a checkpoint of the other stage, or holds a weight that
+    is not a tensor (whether the weights fit the config is checked where a model is built,
+    :mod:`t3fast.pretrained`).
     """
     path = Path(path)
     if not path.is_file():
@@ -117,6 +119,11 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
         )
     if found not in kinds:
         raise CheckpointError(f"{path}: this is a {found}; this command needs a {wanted}")
+    for key, value in state["model"].items():  # what every reader of the weights relies on
+        if not isinstance(key, str):
+            raise CheckpointError(f"{path}: weights are named by strings, not by {type(key).__name__} {key!r}")
+        if not isinstance(value, torch.Tensor):
+            raise CheckpointError(f"{path}: weight {key!r} is a {type(value).__name__}, not a tensor")
     return state
 
 

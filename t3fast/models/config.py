@@ -1,10 +1,46 @@
-"""The sizes of the models (the named ones are in :mod:`t3fast.presets`); the defaults are the papers'."""
+"""The sizes of the models (the named ones are in :mod:`t3fast.presets`); the defaults are the papers'.
+
+Each config checks its values when built (also from a checkpoint's or a file's config): a
+:class:`~t3fast.errors.ConfigError` names the key, the value and the allowed range, so a bad
+size is refused before any model is built from it. The ranges are wide (no width above
+:data:`MAX_WIDTH`, no depth above :data:`MAX_DEPTH`); how many parameters a config builds is
+checked where a checkpoint becomes a model (:mod:`t3fast.pretrained`).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from t3fast.data.classes import GRID_SHAPE, NUM_CLASSES
+from t3fast.errors import ConfigError
+
+#: largest channel count, hidden width, grid side or sequence length a config may ask for
+MAX_WIDTH = 1 << 16
+#: largest number of blocks, layers or hidden layers of one stack
+MAX_DEPTH = 32
+#: largest pe_freqs the fused decode op accepts
+MAX_PE_FREQS = 30
+
+
+def check_int(key: str, value: Any, low: int, high: int = MAX_WIDTH) -> None:
+    """Raises :class:`ConfigError` unless ``value`` is an integer in ``[low, high]``."""
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise ConfigError(f"'{key}' must be an integer in [{low}, {high}], got {value!r}")
+
+
+def check_ints(key: str, values: Any, low: int, min_len: int = 0) -> None:
+    """A list of at most :data:`MAX_DEPTH` integers, each in ``[low, MAX_WIDTH]``."""
+    if not isinstance(values, list | tuple) or not min_len <= len(values) <= MAX_DEPTH:
+        raise ConfigError(f"'{key}' must be a list of {min_len} to {MAX_DEPTH} integers, got {values!r}")
+    for i, value in enumerate(values):
+        check_int(f"{key}[{i}]", value, low)
+
+
+def check_group_norm_width(key: str, width: int) -> None:
+    """The blocks normalise with ``min(8, width)`` groups, which must divide ``width``."""
+    if width > 8 and width % 8:
+        raise ConfigError(f"'{key}' must be a multiple of 8 (or at most 8) for the group norm, got {width}")
 
 
 @dataclass
@@ -32,8 +68,26 @@ class AutoencoderConfig:
 
     def __post_init__(self) -> None:
         if self.latent not in ("triplane", "bev"):
-            raise ValueError(f"latent must be 'triplane' or 'bev', got {self.latent!r}")
+            raise ConfigError(f"'latent' must be 'triplane' or 'bev', got {self.latent!r}")
+        if not isinstance(self.grid, list | tuple) or len(self.grid) != 3:
+            raise ConfigError(f"'grid' must be the 3 sides (X, Y, Z) of the voxel grid, got {self.grid!r}")
         self.grid = tuple(self.grid)
+        for axis, side in zip("XYZ", self.grid):
+            check_int(f"grid ({axis})", side, 1)
+        check_int("num_classes", self.num_classes, 1, 256)  # argmax labels are uint8
+        for key in ("embed_dim", "full_res_channels", "half_res_channels", "channels", "decoder_channels"):
+            check_int(key, getattr(self, key), 1)
+        for key in ("full_res_blocks", "half_res_blocks"):
+            check_int(key, getattr(self, key), 0, MAX_DEPTH)
+        for key in ("full_res_channels", "half_res_channels"):
+            check_group_norm_width(key, getattr(self, key))
+        check_ints("decoder_hidden", self.decoder_hidden, 1)
+        check_int("pe_freqs", self.pe_freqs, 0, MAX_PE_FREQS)
+        if not isinstance(self.refine, bool):
+            raise ConfigError(f"'refine' must be true or false, got {self.refine!r}")
+        if not self.refine and self.decoder_channels != self.channels:
+            raise ConfigError(f"'decoder_channels' ({self.decoder_channels}) must equal 'channels' "
+                              f"({self.channels}) when 'refine' is false")
 
     @property
     def plane_shape(self) -> tuple[int, int, int]:
@@ -81,4 +135,28 @@ class WorldModelConfig:
     def __post_init__(self) -> None:
         if not 1 <= self.scales <= len(self.forecaster_widths):
             raise ValueError(f"scales must be in [1, {len(self.forecaster_widths)}], got {self.scales}")
+        check_ints("forecaster_widths", self.forecaster_widths, 1, min_len=1)
+        check_int("scales", self.scales, 1, len(self.forecaster_widths))
+        check_int("forecaster_heads", self.forecaster_heads, 1)
+        for i, width in enumerate(self.forecaster_widths[: self.scales]):
+            check_group_norm_width(f"forecaster_widths[{i}]", width)
+            if width % self.forecaster_heads:
+                raise ConfigError(f"'forecaster_heads' ({self.forecaster_heads}) must divide every width of "
+                                  f"'forecaster_widths', but not forecaster_widths[{i}] = {width}")
+        check_int("forecaster_layers", self.forecaster_layers, 1, MAX_DEPTH)
+        check_int("max_tokens", self.max_tokens, 0, 1 << 31)
+        check_int("history", self.history, 2)  # motion needs two frames (the local attention reads the last two)
+        check_int("steps", self.steps, 1)
+        check_ints("planner_widths", self.planner_widths, 1, min_len=1)
+        for i, width in enumerate(self.planner_widths):
+            check_group_norm_width(f"planner_widths[{i}]", width)
+        check_int("d_act", self.d_act, 1)
+        check_int("planner_heads", self.planner_heads, 1)
+        if self.d_act % self.planner_heads:
+            raise ConfigError(f"'planner_heads' ({self.planner_heads}) must divide 'd_act' ({self.d_act})")
+        check_int("planner_layers", self.planner_layers, 1, MAX_DEPTH)
+        check_int("past_actions", self.past_actions, 1)
+        for key in ("predict_delta", "ego_aligned", "static_from_present"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

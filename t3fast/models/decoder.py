@@ -10,12 +10,9 @@ from torch import Tensor, nn
 import t3fast.ops as fused_ops
 from t3fast.data.classes import GRID_SHAPE, NUM_CLASSES
 from t3fast.models.blocks import PlaneRefiner
-from t3fast.models.config import AutoencoderConfig
+from t3fast.models.config import MAX_PE_FREQS, AutoencoderConfig
 from t3fast.models.triplane import Triplane
 from t3fast.ops import reference as reference_ops
-
-#: largest pe_freqs the fused op accepts
-MAX_PE_FREQS = 30
 
 
 class TriplaneDecoder(nn.Module):

@@ -227,12 +227,17 @@ class DeltaTriplaneForecaster(nn.Module):
         residual = self.fuse_residual[name]
         return torch.eye(residual.shape[0], dtype=residual.dtype, device=residual.device) + residual
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        # checkpoints written before the identity + residual parametrisation store the full weight
+    def upgrade_state_dict(self, state_dict: dict, prefix: str = "") -> None:
+        """Renames, in place, the weights of checkpoints written before the identity + residual
+        parametrisation, which store the full fusion weight (a square matrix)."""
         for name in list(self.fuse_residual):
-            old = state_dict.pop(f"{prefix}fuse_weight.{name}", None)
-            if old is not None:
+            old = state_dict.get(f"{prefix}fuse_weight.{name}")
+            if isinstance(old, Tensor) and old.dim() == 2 and old.shape[0] == old.shape[1]:
+                del state_dict[f"{prefix}fuse_weight.{name}"]
                 state_dict[f"{prefix}fuse_residual.{name}"] = old - torch.eye(old.shape[0], dtype=old.dtype)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        self.upgrade_state_dict(state_dict, prefix)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def step(self, history: Triplane, step: int) -> tuple[Triplane, Triplane]:

@@ -62,3 +62,21 @@ def test_a_replaced_checkpoint_keeps_its_permissions(tmp_path: Path) -> None:
     path.chmod(0o640)
     save_checkpoint({"step": 2}, path)
     assert stat.S_IMODE(path.stat().st_mode) == 0o640 and load_checkpoint(path)["step"] == 2
+
+
+def test_weights_that_are_not_tensors_are_refused_on_reading(tmp_path: Path) -> None:
+    """Every reader (loading a model, ``t3fast export``) may rely on tensors named by strings."""
+    from t3fast.errors import CheckpointError
+    from t3fast.io.checkpoint import AUTOENCODER, export_weights, read_checkpoint
+
+    config = {"task": {"model": {}, "decoder_backend": "fused"}}
+    path = tmp_path / "ae.pt"
+    save_checkpoint({"model": {"encoder.w": torch.zeros(2), "decoder.w": "oops"}, "config": config}, path)
+    with pytest.raises(CheckpointError, match=r"ae.pt: weight 'decoder.w' is a str, not a tensor"):
+        read_checkpoint(path, AUTOENCODER)
+    with pytest.raises(CheckpointError, match=r"weight 'decoder.w' is a str, not a tensor"):
+        export_weights(path, tmp_path / "out.pt")
+    assert not (tmp_path / "out.pt").exists()
+    save_checkpoint({"model": {3: torch.zeros(2)}, "config": config}, path)
+    with pytest.raises(CheckpointError, match=r"ae.pt: weights are named by strings, not by int 3"):
+        read_checkpoint(path, AUTOENCODER)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import t3fast
-from t3fast.errors import CheckpointError
+from t3fast.errors import CheckpointError, ConfigError
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.pretrained import SHIPPED_DIR, shipped_names
 
@@ -60,3 +60,116 @@ def test_inference_does_not_import_the_training_stack():
             "print(sorted(m for m in sys.modules if m.startswith(('t3fast.training', 't3fast.evaluation'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+# ---------------------------------------------------------------- checkpoints that do not fit their config
+def spoiled(tmp_path, spoil, name="wm.pt"):
+    """The shipped world model with ``spoil(state)`` applied, saved under ``tmp_path``."""
+    from t3fast.io.checkpoint import save_checkpoint
+
+    state = load_checkpoint(SHIPPED_DIR / "wm-small.pt")
+    spoil(state)
+    save_checkpoint(state, tmp_path / name)
+    return tmp_path / name
+
+
+def _set(section, **values):
+    return lambda state: state["config"]["task"][section].update(values)
+
+
+def _weight(key, value):
+    return lambda state: state["model"].__setitem__(key, value)
+
+
+HEAD = "forecaster.predictors.xy.head.weight"
+BAD_CHECKPOINTS = [
+    (_weight(HEAD, torch.zeros(8, 32, 1, 1)), CheckpointError,
+     f"weight '{HEAD}' has shape [8, 32, 1, 1] but the config 'task.model' builds [8, 16, 1, 1]"),
+    (lambda s: s["model"].pop("planner.fc.weight"), CheckpointError,
+     "weight 'planner.fc.weight' is missing (the config 'task.model' builds it with shape [50, 50])"),
+    (_weight("planner.extra", torch.zeros(3)), CheckpointError,
+     "weight 'planner.extra' is not part of the model its config 'task.model' builds"),
+    (_weight("planner.fc.weight", "not a tensor"), CheckpointError,
+     "weight 'planner.fc.weight' is a str, not a tensor"),
+    (_weight("planner.fc.weight", torch.zeros(50, 50, dtype=torch.int64)), CheckpointError,
+     "weight 'planner.fc.weight' has dtype torch.int64, not a floating-point one"),
+    (lambda s: s["config"]["task"].pop("autoencoder"), ConfigError,
+     "its config has no 'task.autoencoder' (the sizes of the model to build)"),
+    (lambda s: s["config"]["task"].__setitem__("model", [1, 2]), ConfigError,
+     "config 'task.model' must be a mapping of WorldModelConfig fields, got a list"),
+    (_set("model", planner_heads=7), ConfigError, "config 'task.model': 'planner_heads' (7) must divide 'd_act' (50)"),
+    (_set("model", forecaster_heads=5), ConfigError, "config 'task.model': 'forecaster_heads' (5) must divide every "
+     "width of 'forecaster_widths', but not forecaster_widths[0] = 16"),
+    (_set("autoencoder", channels=-3), ConfigError,
+     "config 'task.autoencoder': 'channels' must be an integer in [1, 65536], got -3"),
+    (_set("autoencoder", channels=10**9), ConfigError,
+     "config 'task.autoencoder': 'channels' must be an integer in [1, 65536], got 1000000000"),
+    (_set("autoencoder", decoder_hidden=[20000, 20000]), CheckpointError,
+     "weight 'decoder.mlp.0.weight' has shape [128, 68] but the config 'task.autoencoder' builds [20000, 68] "
+     "(and 4 more wrong weights)"),
+    (_set("autoencoder", half_res_channels=60000), ConfigError,
+     "its config builds a model of 194,404,433,046 parameters, more than the 2,000,000,000 loaded; the largest, "
+     "'encoder.half_res.0.body.0.weight' [60000, 60000, 3, 3, 3], is sized by config 'task.autoencoder'"),
+    (_set("model", history=0), ConfigError, "config 'task.model': 'history' must be an integer in [2, 65536], got 0"),
+]
+
+
+@pytest.mark.parametrize(("spoil", "error", "message"), BAD_CHECKPOINTS)
+def test_a_checkpoint_that_does_not_fit_its_config_is_refused_before_the_model_is_built(
+        tmp_path, monkeypatch, spoil, error, message):
+    """Named file, key and sizes; nothing is allocated first: the model is only ever built on
+    the meta device (a 20000-wide decoder took 1.7 GB and 11 s before its shapes were compared)."""
+    from t3fast.models.world_model import T3Former
+
+    path = spoiled(tmp_path, spoil)
+    devices = []
+    build = T3Former.from_config.__func__
+
+    def recording(cls, *args):
+        devices.append(torch.empty(0).device.type)
+        return build(cls, *args)
+
+    monkeypatch.setattr(T3Former, "from_config", classmethod(recording))
+    with pytest.raises(error) as info:
+        t3fast.load_world_model(path)
+    assert str(info.value) == f"{path}: {message}"
+    assert set(devices) <= {"meta"}
+
+
+def test_the_autoencoder_of_a_checkpoint_is_checked_too(tmp_path):
+    path = spoiled(tmp_path, _set("autoencoder", decoder_hidden=[20000, 20000]))
+    with pytest.raises(CheckpointError, match=r"weight 'decoder.mlp.0.weight' has shape \[128, 68\] but the config "
+                                              r"'task.autoencoder' builds \[20000, 68\]"):
+        t3fast.load_autoencoder(path)
+    stage1 = spoiled(tmp_path, lambda s: s.update(
+        model={k: v for k, v in s["model"].items() if k.startswith(("encoder.", "decoder."))},
+        config={"task": {"model": {**s["config"]["task"]["autoencoder"], "embed_dim": 4}, "decoder_backend": "fused"}},
+    ), "ae.pt")
+    with pytest.raises(CheckpointError, match=r"ae.pt: weight 'encoder.embed.weight' has shape \[18, 8\] but the "
+                                              r"config 'task.model' builds \[18, 4\]"):
+        t3fast.load_autoencoder(stage1)
+
+
+def test_weights_named_as_in_earlier_versions_still_load(tmp_path):
+    """Checkpoints from before the identity + residual fusion store the full 1x1 fusion weight."""
+    def old_names(state):
+        for plane in ("xy", "xz", "yz"):
+            residual = state["model"].pop(f"forecaster.fuse_residual.{plane}")
+            state["model"][f"forecaster.fuse_weight.{plane}"] = residual + torch.eye(residual.shape[0])
+
+    model, shipped = t3fast.load_world_model(spoiled(tmp_path, old_names)), t3fast.load_world_model("wm-small")
+    for (k, a), b in zip(model.state_dict().items(), shipped.state_dict().values()):
+        torch.testing.assert_close(a, b, msg=k)
+
+
+def test_config_values_are_checked_where_configs_are_made():
+    from t3fast.models.config import AutoencoderConfig, WorldModelConfig
+
+    with pytest.raises(ConfigError, match=r"'planner_heads' \(7\) must divide 'd_act' \(50\)"):
+        WorldModelConfig(planner_heads=7)
+    with pytest.raises(ConfigError, match=r"'decoder_hidden\[1\]' must be an integer in \[1, 65536\], got -2"):
+        AutoencoderConfig(decoder_hidden=[8, -2])
+    with pytest.raises(ConfigError, match=r"'full_res_channels' must be a multiple of 8 .* got 12"):
+        AutoencoderConfig(full_res_channels=12)
+    with pytest.raises(ConfigError, match=r"'forecaster_layers' must be an integer in \[1, 32\], got 1000"):
+        WorldModelConfig(forecaster_layers=1000)

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
+from t3fast.errors import UsageError
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -130,6 +131,27 @@ def split_past_motion(motion: Tensor) -> tuple[Tensor, Tensor]:
     heading = torch.atan2(motion[..., 1], motion[..., 0])
     heading = torch.cat([heading[:, :1], heading], dim=1) - heading[:, -1:]  # the present heads along +x
     return torch.cat([xy, heading.unsqueeze(-1)], dim=-1), motion
+
+
+def check_finite(name: str, values: Tensor) -> None:
+    """Raises :class:`UsageError` naming ``name`` and the index of its first NaN or infinity (a
+    non-finite pose or displacement would make the whole forecast NaN)."""
+    if not values.is_floating_point():
+        return
+    bad = ~torch.isfinite(values)
+    if bool(bad.any()):
+        index = tuple(bad.nonzero()[0].tolist())
+        raise UsageError(f"{name} must be finite, but {name}[{', '.join(map(str, index))}] is "
+                         f"{values[index].item()} ({int(bad.sum())} non-finite values)")
+
+
+def check_future_actions(future_actions: Tensor, batch: int) -> None:
+    """``future_actions`` must be finite displacements ``[B, S, 2]`` or poses ``[B, S, 3]``, S >= 1."""
+    shape = list(future_actions.shape)
+    if future_actions.dim() != 3 or shape[-1] not in (2, 3) or shape[1] < 1 or shape[0] != batch:
+        raise UsageError(f"future_actions must be displacements [B, S, 2] or poses [B, S, 3] with B = {batch} "
+                         f"and S >= 1, got shape {shape}")
+    check_finite("future_actions", future_actions)
 
 
 class T3Former(nn.Module):
@@ -284,10 +306,32 @@ class T3Former(nn.Module):
                 the present frame to forecast along (the world model as a simulator); None:
                 the planner plans them.
             steps: future frames (6 = 3 s at 2 Hz); ``future_actions`` sets it when given.
+
+        Raises :class:`~t3fast.errors.UsageError` (a ``ValueError``) for a number of past
+        frames other than the model's ``history``, motion that does not fit the frames, and
+        NaN or infinite poses, displacements or ``future_actions`` (naming the first index).
         """
+        if past_occupancy.dim() != 5:
+            raise UsageError(f"past_occupancy must be labels [B, T, X, Y, Z], got shape {list(past_occupancy.shape)}")
+        b, t = past_occupancy.shape[:2]
+        self._check_history("past_occupancy", t)
+        check_finite("past_motion", past_motion)
+        is_poses = past_motion.dim() == 4 and tuple(past_motion.shape[-2:]) == (4, 4)
+        expected = [b, t, 4, 4] if is_poses else [b, t - 1, 2]
+        if list(past_motion.shape) != expected:
+            raise UsageError(f"past_motion must be poses [B, T, 4, 4] or displacements [B, T - 1, 2] for the "
+                             f"{t} frames of past_occupancy (B = {b}), got shape {list(past_motion.shape)}")
         poses, actions = split_past_motion(past_motion)
         past = self.encode_history(past_occupancy, poses)
         return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses)
+
+    def _check_history(self, name: str, frames: int) -> None:
+        """The forecaster was trained on ``history`` past frames (the present included); fewer
+        or more would run, on inputs it never saw."""
+        history = self.forecaster.history
+        if frames != history:
+            raise UsageError(f"{name} has {frames} past frames (the present included), but this model was "
+                             f"trained on {history} (world_config.history)")
 
     @torch.no_grad()
     def forecast_from_triplanes(
@@ -299,7 +343,18 @@ class T3Former(nn.Module):
         decoding to labels. A streaming user encodes each new frame once (papers'
         formulation) and keeps the planes of the previous ones. ``present``: the present
         frame's labels ``[B, X, Y, Z]``, for :func:`observed_static`; ``past_poses``: the past
-        planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`)."""
+        planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`).
+        Refuses (:class:`~t3fast.errors.UsageError`) a number of past frames ``T`` other
+        than the model's ``history`` and non-finite motion, as :meth:`forecast` does."""
+        self._check_history("past", past.xy.shape[1])
+        check_finite("past_actions", past_actions)
+        if past_poses is not None:
+            check_finite("past_poses", past_poses)
+        if future_actions is None:
+            if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+                raise UsageError(f"steps must be a positive integer, got {steps!r}")
+        else:
+            check_future_actions(future_actions, past.xy.shape[0])
         if future_actions is None:
             futures, _, actions = self.rollout(past, past_actions, steps)
             poses = planned_poses(actions, past_actions, past_poses)

@@ -5,8 +5,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import pytest
 import torch
 
+from t3fast.errors import UsageError
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
 from t3fast.models.ego_motion import poses_from_displacements
 from t3fast.models.planner import constant_turn_rate
@@ -179,3 +181,40 @@ def test_future_poses_give_their_displacements():
     assert torch.equal(out.poses, poses)
     torch.testing.assert_close(out.trajectory, poses[..., :2])
     torch.testing.assert_close(out.actions, torch.tensor([[[0.8, 0.0], [0.8, 0.1], [0.8, 0.2]]]))
+
+
+@pytest.mark.parametrize(
+    ("argument", "spoil", "message"),
+    [
+        ("past_motion", lambda m, f: m.__setitem__((0, 2, 1), float("nan")),
+         r"past_motion must be finite, but past_motion\[0, 2, 1\] is nan"),
+        ("past_motion", lambda m, f: m.__setitem__((0, 3, 0), float("inf")),
+         r"past_motion\[0, 3, 0\] is inf"),
+        ("future_actions", lambda m, f: f.__setitem__((0, 1, 0), float("-inf")),
+         r"future_actions must be finite, but future_actions\[0, 1, 0\] is -inf"),
+    ],
+)
+def test_forecast_refuses_non_finite_motion(argument, spoil, message):
+    model = tiny_world_model().eval()
+    motion, future = torch.full((1, 4, 2), 0.5), torch.full((1, 3, 2), 0.5)
+    spoil(motion, future)
+    with pytest.raises(UsageError, match=message):
+        model.forecast(_past(), motion, future_actions=future if argument == "future_actions" else None)
+    poses = torch.eye(4).repeat(1, 5, 1, 1)
+    poses[0, 1, 0, 3] = float("nan")  # ego -> world poses too
+    with pytest.raises(UsageError, match=r"past_motion\[0, 1, 0, 3\] is nan"):
+        model.forecast(_past(), poses)
+
+
+def test_forecast_refuses_a_history_the_model_was_not_trained_on():
+    model = tiny_world_model().eval()
+    assert model.forecaster.history == 5
+    for frames in (3, 7):
+        past = torch.stack([random_labels(1, (16, 12, 4), seed=s) for s in range(frames)], dim=1)
+        with pytest.raises(UsageError, match=f"past_occupancy has {frames} past frames .* trained on 5"):
+            model.forecast(past, torch.zeros(1, frames - 1, 2))
+    with pytest.raises(UsageError, match=r"past_motion must be poses .* got shape \[1, 2, 2\]"):
+        model.forecast(_past(), torch.zeros(1, 2, 2))  # 5 frames need 4 displacements
+    planes = model.encode_sequence(_past()).map(lambda p: p[:, 2:])
+    with pytest.raises(UsageError, match="past has 3 past frames .* trained on 5"):
+        model.forecast_from_triplanes(planes, torch.zeros(1, 2, 2))

@@ -32,12 +32,16 @@ BASELINES = {"copy_paste": copy_paste_method, "constant_velocity": constant_velo
 
 
 def method_name(model: T3Former) -> str:
-    """``"t3former"`` for the full model, else the ablations it is (``own_frames``: the papers'
-    formulation, ``no_delta``, ``single_scale``, ``bev``), read from the sizes it was built from."""
+    """``"t3former"`` for the full model (the flow forecaster), ``"delta_forecaster"`` for the
+    papers' Delta forecaster, else the ablations of the latter it is (``own_frames``: the
+    papers' formulation, ``no_delta``, ``single_scale``, ``bev``), read from the sizes it was
+    built from."""
     world, latent = model.world_config, model.autoencoder_config.latent
+    if getattr(world, "forecaster", "delta") == "flow":
+        return "t3former" if latent != "bev" else "bev"
     parts = [name for name, on in (("own_frames", not world.ego_aligned), ("no_delta", not world.predict_delta),
                                    ("single_scale", world.scales == 1), ("bev", latent == "bev")) if on]
-    return "_".join(parts) or "t3former"
+    return "_".join(parts) or "delta_forecaster"
 
 
 def evaluate_methods(

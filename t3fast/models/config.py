@@ -111,11 +111,16 @@ class WorldModelConfig:
     no-Delta ablation). A BEV-only latent follows from the autoencoder's config.
     """
 
+    # "delta": the papers' DeltaTriplaneForecaster (attention per scale, autoregressive);
+    # "flow": FlowTriplaneForecaster (the present xy plane moved by a predicted flow, plus Delta)
+    forecaster: str = "delta"
     forecaster_widths: list[int] = field(default_factory=lambda: [32, 48, 64, 96, 128])
     scales: int = 5
     forecaster_heads: int = 4
     forecaster_layers: int = 1
     max_tokens: int = 1024  # full attention at scales with history * h * w <= this
+    flow_widths: list[int] = field(default_factory=lambda: [16, 32, 48, 64, 96])  # the flow forecaster's UNet
+    flow_scale: float = 2.0  # plane cells per unit of its flow output, per step
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -133,6 +138,13 @@ class WorldModelConfig:
     static_from_present: bool = True
 
     def __post_init__(self) -> None:
+        if self.forecaster not in ("delta", "flow"):
+            raise ConfigError(f"'forecaster' must be 'delta' or 'flow', got {self.forecaster!r}")
+        check_ints("flow_widths", self.flow_widths, 1, min_len=1)
+        for i, width in enumerate(self.flow_widths):
+            check_group_norm_width(f"flow_widths[{i}]", width)
+        if not (isinstance(self.flow_scale, int | float) and 0 < self.flow_scale < 1e3):
+            raise ConfigError(f"'flow_scale' must be a number in (0, 1000), got {self.flow_scale!r}")
         if not 1 <= self.scales <= len(self.forecaster_widths):
             raise ValueError(f"scales must be in [1, {len(self.forecaster_widths)}], got {self.scales}")
         check_ints("forecaster_widths", self.forecaster_widths, 1, min_len=1)

@@ -33,6 +33,7 @@ from t3fast.models.ego_motion import (
     warp_sequence,
 )
 from t3fast.models.encoder import TriplaneEncoder
+from t3fast.models.flow_forecaster import FlowTriplaneForecaster
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner, constant_turn_rate
 from t3fast.models.triplane import Triplane
@@ -164,7 +165,7 @@ class T3Former(nn.Module):
     def __init__(
         self,
         encoder: TriplaneEncoder,
-        forecaster: DeltaTriplaneForecaster,
+        forecaster: DeltaTriplaneForecaster | FlowTriplaneForecaster,
         planner: MotionPlanner,
         decoder: TriplaneDecoder,
         ego_aligned: bool = False,
@@ -182,7 +183,15 @@ class T3Former(nn.Module):
     def from_config(cls, autoencoder: AutoencoderConfig, world: WorldModelConfig) -> T3Former:
         """A world model of the given sizes (untrained; load a stage-1 encoder/decoder into it)."""
         bev = autoencoder.latent == "bev"
-        forecaster = DeltaTriplaneForecaster(
+        forecaster = FlowTriplaneForecaster(
+            channels=autoencoder.channels,
+            plane_shape=autoencoder.plane_shape,
+            widths=world.flow_widths,
+            history=world.history,
+            steps=world.steps,
+            flow_scale=world.flow_scale,
+            bev=bev,
+        ) if world.forecaster == "flow" else DeltaTriplaneForecaster(
             channels=autoencoder.channels,
             plane_shape=autoencoder.plane_shape,
             widths=world.forecaster_widths[: world.scales],
@@ -280,13 +289,21 @@ class T3Former(nn.Module):
         return futures, deltas, actions
 
     def forward(
-        self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0, points: list[Tensor] | None = None
+        self, past: Triplane, past_actions: Tensor, steps: int = 6, first_step: int = 0,
+        points: list[Tensor] | None = None, motion: bool = False,
     ) -> tuple[list[Triplane], Tensor, list[Tensor] | None]:
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
 
-        Returns (future triplanes, displacements ``[B, steps, 2]``, logits or None).
+        Returns (future triplanes, displacements ``[B, steps, 2]``, logits or None). With
+        ``motion`` (the flow forecaster), instead its
+        :meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.predict`: (future
+        triplanes, flows ``[B, S, 2, H, W]``, Deltas ``[B, S, C, H, W]``); the planner is not run.
         """
+        if motion:
+            if not isinstance(self.forecaster, FlowTriplaneForecaster):
+                raise ValueError("motion=True needs the flow forecaster (world_config.forecaster = 'flow')")
+            return self.forecaster.predict(past)
         futures, _, actions = self.rollout(past, past_actions, steps, first_step)
         logits = None if points is None else [self.decoder(t, p) for t, p in zip(futures, points)]
         return futures, actions, logits

@@ -136,6 +136,9 @@ class SequencesConfig:
     frames_per_scene: int = 40
     stride: int = 1  # frames between consecutive training windows
     cache_dir: str = "runs/cache"  # encoded triplanes of the synthetic training scenes
+    # ego-aligned models: train on windows encoded once in their present frame and kept in
+    # cache_dir (built, with a progress bar, before the first step); the flow forecaster needs it
+    latent_cache: bool = False
     occ3d_root: str = ""
     occ3d_train_info: str = ""
     occ3d_val_info: str = ""
@@ -158,9 +161,14 @@ class WorldLossConfig:
     num_near_free: int = 5_000
     num_far_free: int = 2_000
     num_changed: int = 0  # more query points where the target differs from the present frame (what moved)
+    # the flow forecaster on cached windows (t3fast.training.world_model.motion_loss)
+    agent_weight: float = 20.0  # extra latent-loss weight of the cells an agent covers now or then
+    flow_weight: float = 0.1  # weight of the flow term (L1 in plane cells on the agents' cells)
+    static_flow_weight: float = 0.1  # within the flow term: the flow's size where nothing moves
 
     def __post_init__(self) -> None:
-        _weights("loss.", self, ("gamma", "xi", "action_weight", "lovasz_weight"), "0 turns the term off")
+        _weights("loss.", self, ("gamma", "xi", "action_weight", "lovasz_weight", "agent_weight", "flow_weight",
+                                 "static_flow_weight"), "0 turns the term off")
         if not 1 <= self.rollout_steps <= NUM_FUTURE:
             raise ConfigError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {self.rollout_steps}")
         _at_least("loss.", self, {"num_occupied": 0, "num_near_free": 0, "num_far_free": 0, "num_changed": 0})

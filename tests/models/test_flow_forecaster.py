@@ -64,3 +64,34 @@ def test_forecaster_interface_and_its_limits():
         f.predict(past.map(lambda p: p[:, -3:]))
     with pytest.raises(ValueError, match="at least 2 history frames"):
         FlowTriplaneForecaster(history=1)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(forecaster="lstm"), "'forecaster' must be 'delta' or 'flow'"),
+    (dict(flow_widths=[12]), r"'flow_widths\[0\]' must be a multiple of 8"),
+    (dict(flow_widths=[]), "'flow_widths' must be a list of 1 to"),
+    (dict(flow_scale=0), "'flow_scale' must be a number in"),
+])
+def test_flow_config_refuses_bad_values(bad, message):
+    from t3fast.errors import ConfigError
+    from t3fast.models.config import WorldModelConfig
+
+    with pytest.raises(ConfigError, match=message):
+        WorldModelConfig(**bad)
+
+
+def test_world_model_builds_the_forecaster_its_config_names():
+    from t3fast.models.config import AutoencoderConfig, WorldModelConfig
+    from t3fast.models.world_model import T3Former
+
+    ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
+                           half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
+    world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
+                             planner_heads=2, ego_aligned=True)
+    model = T3Former.from_config(ae, world)
+    assert isinstance(model.forecaster, FlowTriplaneForecaster)
+    past = Triplane(torch.randn(1, 5, 4, 100, 100), torch.randn(1, 5, 4, 100, 16), torch.randn(1, 5, 4, 100, 16))
+    futures, flows, deltas = model(past, torch.zeros(1, 4, 2), motion=True)
+    assert len(futures) == 6 and flows.shape == (1, 6, 2, 100, 100)
+    futures, _, actions = model.rollout(past, torch.zeros(1, 4, 2), 6)
+    assert len(futures) == 6 and actions.shape == (1, 6, 2)

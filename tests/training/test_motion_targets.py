@@ -58,3 +58,10 @@ def test_agents_out_of_view_now_have_no_flow_target():
     valid[0, PRESENT] = False
     flow, moving, _ = agent_flow(boxes, valid)
     assert not moving.any() and (flow == 0).all()
+
+
+def test_a_parked_car_is_static_not_moving():
+    boxes, valid = _boxes(speed=0.0)
+    flow, moving, static = agent_flow(boxes, valid)
+    assert not moving.any() and (flow.abs() < 1e-4).all()
+    assert static[0, :, 50, 50].all()  # its cells keep their content: flow target 0

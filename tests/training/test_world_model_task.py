@@ -29,7 +29,8 @@ from ..models.test_world_model import tiny_world_model
 
 TINY_AE = ["data.train_scenes=1", "data.frames_per_scene=11", "data.val_scenes=1", "data.val_stride=11",
            "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100", "train.eval_every=0"]
-TINY_WM = ["model.forecaster_widths=[8,8,8]", "model.scales=3", "model.max_tokens=64", "model.planner_widths=[8,8,8,8]",
+TINY_WM = ["model.forecaster_widths=[8,8,8]", "model.scales=3", "model.max_tokens=64", "model.flow_widths=[8,8,8]",
+           "model.planner_widths=[8,8,8,8]",
            "model.d_act=20", "data.train_scenes=1", "data.frames_per_scene=12", "data.val_scenes=1",
            "data.val_windows=1", "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100",
            "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
@@ -94,7 +95,7 @@ def test_train_log_has_every_loss_part(world_ckpt):
     events = [json.loads(line) for line in (world_ckpt.parent / "metrics.jsonl").read_text().splitlines()]
     train = [e for e in events if e["event"] == "train"]
     assert [e["step"] for e in train] == [1, 2]
-    assert {"loss", "triplane", "occupancy", "action"} <= set(train[-1]["values"])
+    assert {"loss", "latent", "copy_latent", "flow_moving", "flow_static"} <= set(train[-1]["values"])
     assert any(e["event"] == "eval" and "miou_avg" in e["values"] for e in events)
 
 
@@ -121,7 +122,7 @@ def test_exported_weights_give_the_same_forecast(world_ckpt, tmp_path):
     assert size < world_ckpt.stat().st_size / 2  # no optimizer state, float16
     full = load_world_model(world_ckpt)
     half = load_world_model(small)
-    assert half.world_config.forecaster_widths == [8, 8, 8]
+    assert half.world_config.forecaster == "flow" and half.world_config.flow_widths == [8, 8, 8]
     occ = torch.randint(0, 18, (1, 5, 200, 200, 16), dtype=torch.uint8)
     a, b = full.forecast(occ, torch.zeros(1, 4, 2), steps=2), half.forecast(occ, torch.zeros(1, 4, 2), steps=2)
     assert (a.labels == b.labels).float().mean() > 0.99
@@ -171,7 +172,7 @@ def test_stage2_rejects_a_missing_autoencoder(tmp_path, capsys):
 
 
 def test_rollout_steps_out_of_range(world_ckpt):
-    cfg = preset("wm-small")
+    cfg = preset("wm-small-delta")
     cfg.autoencoder_ckpt, cfg.loss.rollout_steps = str(world_ckpt.parent.parent / "ae" / "last.pt"), 7
     planes = Triplane(torch.zeros(1, 11, 8, 8, 6), torch.zeros(1, 11, 8, 8, 2), torch.zeros(1, 11, 8, 6, 2))
     batch = SequenceBatch(torch.zeros(1, 11, 16, 12, 4, dtype=torch.uint8), planes, torch.zeros(1, 4, 2),

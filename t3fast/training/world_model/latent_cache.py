@@ -7,10 +7,10 @@ encoded once, stored in float16 (one file per window, about 2.3 MB with the smal
 autoencoder), and read by every later run and ablation. A window's file also holds what the
 motion targets are made from: the agents' boxes and the ego's displacements.
 
-The cache folder's name hashes the encoder's weights and the synthetic world's generator
-source, so a new autoencoder or a changed world builds a new cache instead of reading stale
-planes. Building is resumable: windows whose file exists are skipped, and every file is
-written atomically.
+The cache folder's name hashes the encoder's weights and the data of the split's first scene,
+so a new autoencoder or a changed world builds a new cache instead of reading stale planes.
+Building is resumable: windows whose file exists are skipped, and every file is written
+atomically.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from torch import Tensor
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-import t3fast.data.synthetic as synthetic_package
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.models.triplane import Triplane
@@ -33,12 +32,13 @@ from t3fast.training.triplane_cache import encoder_digest
 from t3fast.training.world_model.windows import ego_aligned_window
 
 
-def world_digest() -> str:
-    """Short hash of the synthetic world's generator source (the data a cache was built from)."""
+def world_digest(windows: SyntheticDriving) -> str:
+    """Short hash of what the split's first scene holds (labels, poses, boxes): a change of the
+    synthetic world that changes its data changes it; an edit that does not, does not."""
+    scene = windows.scenes.packed(0)
     h = hashlib.sha256()
-    for path in sorted(Path(synthetic_package.__file__).parent.glob("*.py")):
-        h.update(path.name.encode())
-        h.update(path.read_bytes())
+    for part in (*scene.occ, scene.ego_poses.tobytes(), scene.boxes.tobytes(), scene.labels.tobytes()):
+        h.update(part)
     return h.hexdigest()[:12]
 
 
@@ -70,7 +70,7 @@ class AlignedLatentCache(Dataset):
             raise ValueError("AlignedLatentCache stores windows as generated: pass flip=False")
         self.windows, self.model = windows, model
         split = windows.scenes.split
-        key = f"{encoder_digest(model.encoder)}-{world_digest()}-{split}-{windows.scenes.frames_per_scene}f"
+        key = f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{split}-{windows.scenes.frames_per_scene}f"
         self.root = Path(cache_dir) / f"aligned-{key}"
 
     def path(self, index: int) -> Path:

@@ -11,7 +11,7 @@ of the xy plane). A plain L1 over the plane therefore rewards copying. Here:
   (:func:`~t3fast.training.world_model.motion_targets.agent_flow`) on the cells inside their
   boxes, plus ``static_flow_weight`` x the flow's size where nothing moves.
 
-``total = latent + flow_weight * flow`` is exactly what the gradient sees. Also logged, without
+``total = latent + flow_weight * flow`` (logged as ``loss``) is exactly what the gradient sees. Also logged, without
 gradient: the same latent loss of the copy forecast (the present plane repeated), the bar a
 forecaster has to get under.
 """
@@ -53,6 +53,6 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) ->
     total = latent + loss.flow_weight * flow_term
     with torch.no_grad():
         copy = _latent_error(present.expand_as(target), target, weight, loss.gamma)
-    parts = {"latent": latent, "copy_latent": copy, "flow_moving": flow_moving, "flow_static": flow_static,
-             "total": total}
+    # the trainer logs ``total`` as ``loss``
+    parts = {"latent": latent, "copy_latent": copy, "flow_moving": flow_moving, "flow_static": flow_static}
     return total, {k: float(v.detach()) for k, v in parts.items()}

@@ -3,8 +3,11 @@
 Training windows carry the agents' boxes in the present frame at every frame (synthetic data
 and Occ3D infos both have them). For future step ``k`` a cell inside agent ``a``'s box at
 frame ``PRESENT + 1 + k`` holds what was at the same place on that agent's box in the present
-frame: its backward flow is that rigid motion taken back. A cell that no box covers, now or
-then, is static (flow 0: in the ego-aligned frame the world stands still). Cells an agent
+frame: its backward flow is that rigid motion taken back. Such a cell is *moving* when that
+flow is at least ``min_flow`` cells. A cell that no box covers, now or then, or one of an agent
+that has not moved (parked cars are most of the agents' cells), is *static* (flow 0: in the
+ego-aligned frame the world stands still). Keeping the two apart matters: averaged together,
+the parked cars' zero flow taught a forecaster that agents do not move. Cells an agent
 uncovers, and agents that were not in view in the present frame, have no flow target (their
 content is new, which Delta must produce).
 """
@@ -34,7 +37,8 @@ def _rotate(v: Tensor, yaw: Tensor) -> Tensor:
 
 
 def agent_flow(
-    boxes: Tensor, box_valid: Tensor, shape: tuple[int, int] = (100, 100), margin: float = 0.4
+    boxes: Tensor, box_valid: Tensor, shape: tuple[int, int] = (100, 100), margin: float = 0.4,
+    min_flow: float = 0.5,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Backward flow targets of the future steps of windows.
 
@@ -43,11 +47,13 @@ def agent_flow(
         box_valid: ``[B, 11, A]``.
         shape: the xy plane's ``(H, W)``.
         margin: metres added to each half-size, so a cell the box only partly covers counts.
+        min_flow: plane cells an agent's cell must move to count as moving.
 
     Returns:
         flow ``[B, S, 2, H, W]`` in plane cells (``S`` future frames), ``moving`` bool
-        ``[B, S, H, W]`` (cells inside a box of an agent seen now and then: flow target from
-        its motion), ``static`` bool ``[B, S, H, W]`` (cells no box covers now or then: flow 0).
+        ``[B, S, H, W]`` (cells inside the box of an agent seen now and then that moved at
+        least ``min_flow``: flow target from its motion), ``static`` bool ``[B, S, H, W]``
+        (cells no box covers now or then, and those of agents that did not move: flow 0).
     """
     b, t, a, _ = boxes.shape
     h, w = shape
@@ -76,9 +82,11 @@ def agent_flow(
         owner = torch.where(hit, torch.arange(a, device=boxes.device).view(1, a, 1), -1).amax(1)  # [B, HW]
         picked = offset.gather(1, owner.clamp(min=0).view(b, 1, h * w, 1).expand(-1, 1, -1, 2)).squeeze(1)
         covered = owner >= 0
-        flows.append(torch.where(covered[..., None], picked, torch.zeros_like(picked)))
-        moving.append(covered)
+        flow = torch.where(covered[..., None], picked, torch.zeros_like(picked))
+        moved = covered & (flow.norm(dim=-1) >= min_flow)
+        flows.append(flow)
+        moving.append(moved)
         any_then = (in_then & box_valid[:, frame, :, None]).any(1)
-        static.append(~(any_then | in_now.any(1)))
+        static.append(~(any_then | in_now.any(1)) | (covered & ~moved))
     flow = torch.stack(flows, 1).view(b, -1, h, w, 2).permute(0, 1, 4, 2, 3)
     return flow, torch.stack(moving, 1).view(b, -1, h, w), torch.stack(static, 1).view(b, -1, h, w)

@@ -11,13 +11,18 @@ from torch.utils.data import Dataset
 
 from t3fast.data.sample import NUM_FUTURE
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
+from t3fast.errors import ConfigError
+from t3fast.io.checkpoint import AUTOENCODER, WORLD_MODEL, checkpoint_kind, read_checkpoint
 from t3fast.io.config import config_to_dict, load_config
 from t3fast.models.config import AutoencoderConfig
 from t3fast.models.world_model import T3Former
+from t3fast.pretrained import resolve
 from t3fast.training.configs import Stage2Config
+from t3fast.training.distributed import barrier, is_main
 from t3fast.training.triplane_cache import cached_scene_triplanes
+from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatentCache, AlignedWindow, collate_aligned
 from t3fast.training.world_model.loss import rollout_loss
+from t3fast.training.world_model.motion_loss import motion_loss
 from t3fast.training.world_model.windows import (
     EncodedWindows,
     SequenceBatch,
@@ -45,11 +50,18 @@ class WorldModelTask:
 
     def __init__(self, cfg: Stage2Config):
         self.cfg = copy.deepcopy(cfg)
-        self._stage1 = read_checkpoint(self.cfg.autoencoder_ckpt, AUTOENCODER)  # read once: config and weights
+        # read once: config and weights; a world model's checkpoint (e.g. a shipped one) lends its
+        # encoder and decoder, so stage 2 can start from a shipped model without its stage-1 run
+        self._stage1 = read_checkpoint(resolve(self.cfg.autoencoder_ckpt), (AUTOENCODER, WORLD_MODEL))
         if self.cfg.autoencoder is None:
-            self.cfg.autoencoder = load_config(AutoencoderConfig, self._stage1["config"]["task"]["model"])
+            task = self._stage1["config"]["task"]
+            source = task["model"] if checkpoint_kind(self._stage1) == AUTOENCODER else task["autoencoder"]
+            self.cfg.autoencoder = load_config(AutoencoderConfig, source)
+        if self.cfg.model.forecaster == "flow" and not (self.cfg.data.latent_cache and self.cfg.model.ego_aligned):
+            raise ConfigError("model.forecaster=flow trains on cached ego-aligned windows: set data.latent_cache=true "
+                              "and model.ego_aligned=true")
         self._val = None
-        self._encoder = None
+        self._encoder = self._model = None
 
     def build_model(self) -> nn.Module:
         model = build_world_model(self.cfg)
@@ -58,17 +70,23 @@ class WorldModelTask:
             model.decoder.requires_grad_(False)  # still passes the occupancy loss on to the forecaster
         if self.cfg.planner_lr_scale == 0:
             model.planner.requires_grad_(False)
-        self._encoder = model.encoder
+        self._encoder, self._model = model.encoder, model
         return model
 
     def train_dataset(self) -> Dataset:
         data = self.cfg.data
         if data.source == "synthetic":
             windows = SyntheticDriving("train", data.train_scenes, data.frames_per_scene, stride=data.stride)
+            if self._encoder is None and (data.latent_cache or not self.cfg.model.ego_aligned):
+                raise RuntimeError("build_model() must run before train_dataset()")
+            if self.cfg.model.ego_aligned and data.latent_cache:  # moved and encoded once, read from disk
+                cache = AlignedLatentCache(windows, self._model, data.cache_dir)
+                if is_main():
+                    cache.build()
+                barrier()
+                return cache
             if self.cfg.model.ego_aligned:  # moved into each window's present frame, encoded in the step
                 return windows
-            if self._encoder is None:
-                raise RuntimeError("build_model() must run before train_dataset()")
             planes = cached_scene_triplanes(self._encoder, windows.scenes, data.cache_dir)
             return EncodedWindows(windows, planes)
         if data.source == "occ3d":
@@ -77,13 +95,17 @@ class WorldModelTask:
             return Occ3DNuScenes(data.occ3d_root, data.occ3d_train_info, stride=data.stride)
         raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
 
-    def collate(self, batch_list: list) -> SequenceBatch:
+    def collate(self, batch_list: list) -> SequenceBatch | AlignedBatch:
+        if isinstance(batch_list[0], AlignedWindow):
+            return collate_aligned(batch_list)
         return collate_windows(batch_list)
 
-    def samples_in(self, batch: SequenceBatch) -> int:
-        return batch.occ.shape[0]
+    def samples_in(self, batch: SequenceBatch | AlignedBatch) -> int:
+        return batch.planes.xy.shape[0] if isinstance(batch, AlignedBatch) else batch.occ.shape[0]
 
-    def training_step(self, model: nn.Module, batch: SequenceBatch) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, float]]:
+        if isinstance(batch, AlignedBatch):
+            return motion_loss(model, batch, self.cfg.loss)
         core = model.module if hasattr(model, "module") else model
         steps = self.cfg.loss.rollout_steps
         if not 1 <= steps <= NUM_FUTURE:
@@ -102,11 +124,14 @@ class WorldModelTask:
         windows; the first call also logs Copy&Paste and the constant-velocity warp on the same
         windows, so every later score can be read against them."""
         from t3fast.evaluation.world_model import (
+            SharedRollout,
             copy_paste_method,
             evaluate_many,
             t3former_method,
             track_const_vel_method,
+            track_gt_ego_method,
             warp_const_vel_method,
+            warp_gt_ego_method,
         )
 
         data = self.cfg.data
@@ -115,16 +140,28 @@ class WorldModelTask:
         if first:
             self._val = SyntheticDriving("val", data.val_scenes, data.frames_per_scene, stride=data.val_stride)
         indices = list(range(min(len(self._val), data.val_windows)))
-        methods = {"t3former": t3former_method(model)}
+        shared = SharedRollout(model)
+        methods = {"t3former": t3former_method(model, shared=shared)}
+        if model.ego_aligned:  # the forecast along the true poses: what the forecaster itself is worth
+            methods["t3former_gt_ego"] = t3former_method(model, gt_ego=True, shared=shared)
         if first:  # the baselines once, in the same pass over the windows
             methods.update(copy_paste=copy_paste_method, warp_const_vel=warp_const_vel_method,
-                           track_const_vel=track_const_vel_method)
+                           track_const_vel=track_const_vel_method, warp_gt_ego=warp_gt_ego_method,
+                           track_gt_ego=track_gt_ego_method)
         records = evaluate_many(methods, self._val, indices, device=device, progress=False, absent="skip")
         result = records.pop("t3former")
         values = {"score": result["miou"]["avg"], "miou_avg": result["miou"]["avg"], "iou_avg": result["iou"]["avg"],
-                  "miou_0s": result["miou"]["0s"], "l2_mean_avg": result["l2_mean"]["avg"]}
+                  "miou_moving_avg": result["miou_moving"]["avg"], "miou_0s": result["miou"]["0s"],
+                  "l2_mean_avg": result["l2_mean"]["avg"]}
+        steered = records.pop("t3former_gt_ego", None)
+        if steered is not None:
+            # the planner is not what stage 2 trains here: best.pt follows the forecast at both the
+            # planned and the true poses
+            values["score"] = (result["miou"]["avg"] + steered["miou"]["avg"]) / 2
+            values.update(gt_ego_miou_avg=steered["miou"]["avg"], gt_ego_miou_moving_avg=steered["miou_moving"]["avg"])
         for name, base in records.items():
-            values.update({f"{name}_miou_avg": base["miou"]["avg"], f"{name}_iou_avg": base["iou"]["avg"]})
+            values.update({f"{name}_miou_avg": base["miou"]["avg"], f"{name}_iou_avg": base["iou"]["avg"],
+                           f"{name}_miou_moving_avg": base["miou_moving"]["avg"]})
         return values
 
     def lr_scales(self) -> dict[str, float]:

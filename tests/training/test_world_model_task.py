@@ -33,7 +33,7 @@ TINY_WM = ["model.forecaster_widths=[8,8,8]", "model.scales=3", "model.max_token
            "model.planner_widths=[8,8,8,8]",
            "model.d_act=20", "data.train_scenes=1", "data.frames_per_scene=12", "data.val_scenes=1",
            "data.val_windows=1", "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100",
-           "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+           "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1", "train.batch_size=1"]
 
 
 def shifting_sequence(frames: int = 11, grid=(16, 12, 4)) -> torch.Tensor:

@@ -4,6 +4,7 @@ checkpoint, feeds it windows, scores its rollouts on validation windows."""
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
@@ -52,7 +53,10 @@ class WorldModelTask:
         self.cfg = copy.deepcopy(cfg)
         # read once: config and weights; a world model's checkpoint (e.g. a shipped one) lends its
         # encoder and decoder, so stage 2 can start from a shipped model without its stage-1 run
-        self._stage1 = read_checkpoint(resolve(self.cfg.autoencoder_ckpt), (AUTOENCODER, WORLD_MODEL))
+        source = Path(self.cfg.autoencoder_ckpt)
+        if len(source.parts) == 1 and not source.is_file():  # a bare name: a shipped model
+            source = resolve(source)
+        self._stage1 = read_checkpoint(source, (AUTOENCODER, WORLD_MODEL))
         if self.cfg.autoencoder is None:
             task = self._stage1["config"]["task"]
             source = task["model"] if checkpoint_kind(self._stage1) == AUTOENCODER else task["autoencoder"]

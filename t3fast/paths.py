@@ -59,11 +59,7 @@ def output_dir(path: str | Path) -> Path:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UsageError(f"--out {path} is a file, not a folder")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise UsageError(f"--out {path}: {parent} is a file, not a folder")
-            break
+    _check_nearest_parent(path)
     return path
 
 
@@ -73,9 +69,14 @@ def output_file(path: str | Path, kind: str = "file") -> Path:
     path = Path(path)
     if path.is_dir():
         raise UsageError(f"--out {path} is a folder; it names the {kind} to write")
+    _check_nearest_parent(path)
+    return path
+
+
+def _check_nearest_parent(path: Path) -> None:
+    """The nearest existing folder above ``path`` must be a folder, not a file."""
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise UsageError(f"--out {path}: {parent} is a file, not a folder")
             break
-    return path

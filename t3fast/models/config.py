@@ -120,7 +120,8 @@ class WorldModelConfig:
     forecaster_layers: int = 1
     max_tokens: int = 1024  # full attention at scales with history * h * w <= this
     flow_widths: list[int] = field(default_factory=lambda: [16, 32, 48, 64, 96])  # the flow forecaster's UNet
-    flow_scale: float = 2.0  # plane cells per unit of its flow output, per step
+    flow_scale: float = 2.0  # plane cells per unit of its displacement output, per step
+    match_radius: int = 6  # its matching costs look this many plane cells around each cell
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -145,6 +146,9 @@ class WorldModelConfig:
             check_group_norm_width(f"flow_widths[{i}]", width)
         if not (isinstance(self.flow_scale, int | float) and 0 < self.flow_scale < 1e3):
             raise ConfigError(f"'flow_scale' must be a number in (0, 1000), got {self.flow_scale!r}")
+        radius = self.match_radius
+        if isinstance(radius, bool) or not (isinstance(radius, int) and 0 <= radius <= 16):
+            raise ConfigError(f"'match_radius' must be an integer in [0, 16], got {self.match_radius!r}")
         if not 1 <= self.scales <= len(self.forecaster_widths):
             raise ValueError(f"scales must be in [1, {len(self.forecaster_widths)}], got {self.scales}")
         check_ints("forecaster_widths", self.forecaster_widths, 1, min_len=1)

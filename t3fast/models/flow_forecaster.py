@@ -1,21 +1,33 @@
-"""FlowTriplaneForecaster: future triplanes as the present one moved by a predicted flow, plus Delta.
+"""FlowTriplaneForecaster: future triplanes as the present one with its agents moved, plus Delta.
 
 In the ego-aligned frame the static world stands still, so what a forecaster has to produce
 is motion: agents carried along their paths, a few cells per step. The papers' Delta
 forecaster (:mod:`t3fast.models.forecaster`) has to rebuild a moved car cell by cell from
 attention; trained on a 2-core budget it learnt nothing that beat its initialisation. Here
-motion is represented as motion: one UNet reads the history of xy planes (the frames and
-their differences, which show what moved and how fast), and predicts for every future step
-``k`` a backward flow field (where each cell's content comes from) and a change Delta:
+motion is represented as motion, the way a tracker does it:
 
-    xy_k = delta_fuse(Delta_k, warp(xy_present, flow_k))
+* one UNet reads the history of xy planes, their differences and *matching costs* (how well
+  each present cell matches each cell around it in the previous frame, and the previous in
+  the one before: :func:`~t3fast.models.plane_warp.matching_costs`). The best match shows
+  where a cell's content came from, so the motion estimate is local and does not depend on
+  what the content is;
+* for every future step ``k`` it predicts, at each *present* cell, where that cell's content
+  will be (a forward displacement, supervised directly by the agents' boxes in training)
+  and a change Delta;
+* the present plane is moved accordingly: the displacements of the moving cells are splatted
+  forward (:func:`~t3fast.models.plane_warp.splat_plane`) into a backward flow at the cells
+  they land on, which is one bilinear lookup of the present plane
+  (:func:`~t3fast.models.plane_warp.warp_plane`), so a car moves as a whole and stays sharp.
+  The cells a moving agent leaves and nothing lands on take a learned fill (what is under a
+  car: road), and ``xy_k = delta_fuse(Delta_k, moved_k)`` corrects the rest.
 
-``warp`` is a bilinear lookup (:func:`~t3fast.models.plane_warp.warp_plane`), so a car moves
-as a whole and stays sharp; Delta erases what a moving agent uncovers and corrects the rest.
-All six steps come from one pass (not autoregressive: six times cheaper, and no compounding of
-a step's errors through the next step's input). The flow is initialised near zero and Delta
-at zero: the untrained forecaster is the present frame, as the Delta forecaster's is, but the
-flow head is not exactly zero, so the body receives gradients from the first step on.
+Predicting at the present cells is what makes this learnable: the car's motion is decided
+where the car is, not 20 cells ahead at the place it will reach in 3 s (a backward flow
+predicted there fitted the training windows but generalised poorly). All six steps come from
+one pass (not autoregressive: six times cheaper, and no compounding of a step's errors
+through the next step's input). The displacements start near zero and Delta at zero: the
+untrained forecaster is the present frame, but the displacement head is not exactly zero, so
+the body receives gradients from the first step on.
 
 The xz and yz planes (height profiles pooled along y and x) are carried from the present: the
 true future xy plane with the present xz/yz keeps 98 % of what the true future triplane gains
@@ -31,7 +43,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from t3fast.models.blocks import group_norm
-from t3fast.models.plane_warp import warp_plane
+from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
 from t3fast.ops import delta_fuse
 
@@ -72,6 +84,24 @@ class FlowUNet(nn.Module):
         return self.head(y)
 
 
+MOVING_CELLS = 0.5  # a displacement of at least this many cells counts as moving content
+
+
+def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
+    """``present`` ``[B, C, H, W]`` with each cell's content moved by its forward
+    ``displacement`` ``[B, 2, H, W]`` (plane cells); cells that moving content leaves and none
+    lands on take ``fill`` ``[C]``. Cells moving less than :data:`MOVING_CELLS` count
+    proportionally less, so a static world stays put."""
+    size = torch.sqrt(displacement.square().sum(1, keepdim=True) + 1e-12)
+    moving = (size / MOVING_CELLS).clamp(max=1)  # [B, 1, H, W]
+    landed = splat_plane(torch.cat([-displacement * moving, moving], dim=1), displacement)
+    cover = landed[:, 2:]
+    moved = warp_plane(present, landed[:, :2] / cover.clamp(min=1))
+    # the share of a cell that stays put covers it too: only moving content leaves a hole
+    vacated = (moving - cover).clamp(min=0)
+    return moved + vacated * (fill.view(1, -1, 1, 1) - moved)
+
+
 class FlowTriplaneForecaster(nn.Module):
     """Past planes -> the future triplanes of all ``steps`` steps at once.
 
@@ -81,8 +111,10 @@ class FlowTriplaneForecaster(nn.Module):
         widths: channels of the UNet's levels.
         history: past frames read (the present included).
         steps: future steps predicted.
-        flow_scale: plane cells per unit of the flow head's output per step (step ``k``'s
-            flow is ``flow_scale * (k + 1) * output``: the head outputs a velocity-like value).
+        flow_scale: plane cells per unit of the displacement head's output per step (step
+            ``k``'s displacement is ``flow_scale * (k + 1) * output``: a velocity-like value).
+        match_radius: the matching costs compare each cell with the cells up to this many
+            cells away in the previous frame (the fastest agents move ~7 cells a step).
         bev: the latent has only the xy plane.
     """
 
@@ -94,44 +126,50 @@ class FlowTriplaneForecaster(nn.Module):
         history: int = 5,
         steps: int = 6,
         flow_scale: float = 2.0,
+        match_radius: int = 6,
         bev: bool = False,
     ):
         super().__init__()
         if history < 2:
             raise ValueError(f"FlowTriplaneForecaster needs at least 2 history frames to see motion, got {history}")
         self.channels, self.history, self.steps, self.flow_scale, self.bev = channels, history, steps, flow_scale, bev
-        self.unet = FlowUNet((2 * history - 1) * channels, steps * (2 + channels), widths)
+        self.match_radius, self.match_pairs = match_radius, min(2, history - 1)
+        costs = self.match_pairs * (2 * match_radius + 1) ** 2
+        self.match_stem = nn.Sequential(nn.Conv2d(costs, 32, 1), nn.SiLU())  # compress before the 3x3 convs
+        self.unet = FlowUNet((2 * history - 1) * channels + 32, steps * (2 + channels), widths)
         head = self.unet.head
-        with torch.no_grad():  # Delta starts at zero, the flow near zero (but not exactly: see above)
+        with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
             head.weight.zero_()
             head.bias.zero_()
             head.weight.view(steps, 2 + channels, -1)[:, :2].normal_(std=1e-3)
         # the 1x1 fusion is the identity plus a learned part that starts at 0 (as in the Delta forecaster)
         self.fuse_residual = nn.Parameter(torch.zeros(channels, channels))
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
+        self.fill = nn.Parameter(torch.zeros(channels))
 
     def predict(self, past: Triplane) -> tuple[list[Triplane], Tensor, Tensor]:
         """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) -> (the ``steps``
-        future triplanes, flows ``[B, steps, 2, H, W]`` in plane cells, Deltas
-        ``[B, steps, C, H, W]`` of the xy plane)."""
+        future triplanes, forward displacements ``[B, steps, 2, H, W]`` of the present cells in
+        plane cells, Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
         xy = past.xy[:, -self.history :]
         b, t, c, h, w = xy.shape
         if t < self.history:
             raise ValueError(f"FlowTriplaneForecaster: {self.history} history frames needed, got {t}")
-        inputs = torch.cat([xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2)], dim=1)
+        costs = torch.cat([matching_costs(xy[:, -1 - p], xy[:, -2 - p], self.match_radius)
+                           for p in range(self.match_pairs)], dim=1)
+        inputs = torch.cat([xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)], dim=1)
         out = self.unet(inputs).view(b, self.steps, 2 + c, h, w)
         scale = self.flow_scale * torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype)
-        flows = out[:, :, :2] * scale.view(1, -1, 1, 1, 1)
+        displacements = out[:, :, :2] * scale.view(1, -1, 1, 1, 1)
         deltas = out[:, :, 2:]
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
         futures = []
         for k in range(self.steps):
-            moved = warp_plane(present, flows[:, k])
+            moved = move_plane(present, displacements[:, k], self.fill)
             nxt = delta_fuse(deltas[:, k].contiguous(), moved.contiguous(), weight, self.fuse_bias)
             futures.append(Triplane(nxt, *(None if p is None else p[:, -1] for p in past[1:])))
-        return futures, flows, deltas
-
+        return futures, displacements, deltas
     def forward(
         self, past: Triplane, steps: int | None = None, first_step: int = 0
     ) -> tuple[list[Triplane], list[Triplane]]:

@@ -190,6 +190,7 @@ class T3Former(nn.Module):
             history=world.history,
             steps=world.steps,
             flow_scale=world.flow_scale,
+            match_radius=world.match_radius,
             bev=bev,
         ) if world.forecaster == "flow" else DeltaTriplaneForecaster(
             channels=autoencoder.channels,
@@ -298,7 +299,8 @@ class T3Former(nn.Module):
         Returns (future triplanes, displacements ``[B, steps, 2]``, logits or None). With
         ``motion`` (the flow forecaster), instead its
         :meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.predict`: (future
-        triplanes, flows ``[B, S, 2, H, W]``, Deltas ``[B, S, C, H, W]``); the planner is not run.
+        triplanes, forward displacements of the present cells ``[B, S, 2, H, W]``, Deltas
+        ``[B, S, C, H, W]``); the planner is not run.
         """
         if motion:
             if not isinstance(self.forecaster, FlowTriplaneForecaster):

@@ -139,6 +139,7 @@ class SequencesConfig:
     # ego-aligned models: train on windows encoded once in their present frame and kept in
     # cache_dir (built, with a progress bar, before the first step); the flow forecaster needs it
     latent_cache: bool = False
+    latent_flips: bool = True  # each cached training batch randomly mirrored / transposed (8 ways)
     occ3d_root: str = ""
     occ3d_train_info: str = ""
     occ3d_val_info: str = ""

@@ -158,8 +158,6 @@ def test_a_moved_block_appears_at_its_new_place_and_leaves_the_fill():
 
 
 
-@pytest.mark.xfail(strict=True, reason="move_plane blends cells moving under MOVING_CELLS towards the fill: "
-                   "their unmoved share is not counted as covering them")
 def test_a_slow_uniform_motion_keeps_a_constant_plane():
     present = torch.ones(1, 2, 10, 10)
     disp = torch.zeros(1, 2, 10, 10)

@@ -7,9 +7,10 @@ of the xy plane). A plain L1 over the plane therefore rewards copying. Here:
 * ``latent``: L1 + gamma * L2 between the predicted and the encoded future xy planes, each
   cell weighted ``1 + agent_weight`` where an agent is, now or at that step (so the moving
   content carries a fixed share of the loss however small it is), else 1;
-* ``flow``: L1 between the predicted flow and the agents' motion
-  (:func:`~t3fast.training.world_model.motion_targets.agent_flow`) on the cells inside their
-  boxes, plus ``static_flow_weight`` x the flow's size where nothing moves.
+* ``flow``: L1 between the predicted forward displacement of the present cells and the
+  agents' motion (:func:`~t3fast.training.world_model.motion_targets.agent_motion`) on the
+  cells of moving agents, plus ``static_flow_weight`` x the displacement's size where nothing
+  moves.
 
 ``total = latent + flow_weight * flow`` (logged as ``loss``) is exactly what the gradient sees. Also logged, without
 gradient: the same latent loss of the copy forecast (the present plane repeated), the bar a
@@ -24,7 +25,7 @@ from torch import Tensor, nn
 from t3fast.data.sample import PRESENT
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.latent_cache import AlignedBatch
-from t3fast.training.world_model.motion_targets import agent_flow
+from t3fast.training.world_model.motion_targets import agent_motion
 
 
 def _latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) -> Tensor:
@@ -40,11 +41,12 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) ->
     history = planes.map(lambda p: p[:, : PRESENT + 1])
     futures, flows, _ = model(history, batch.past_actions, motion=True)
     pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
-    target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + pred.shape[1]]
+    steps = pred.shape[1]
+    target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]
     present = planes.xy[:, PRESENT : PRESENT + 1]
-    flow, moving, static = agent_flow(batch.boxes, batch.box_valid, tuple(pred.shape[-2:]))
-    flow, moving, static = flow[:, : pred.shape[1]], moving[:, : pred.shape[1]], static[:, : pred.shape[1]]
-    weight = 1.0 + loss.agent_weight * (~static).float()
+    flow, moving, static, agents = (m[:, :steps] for m in agent_motion(batch.boxes, batch.box_valid,
+                                                                       tuple(pred.shape[-2:])))
+    weight = 1.0 + loss.agent_weight * agents.float()
     latent = _latent_error(pred, target, weight, loss.gamma)
     flow_error = (flows - flow).abs().sum(2)
     flow_moving = (flow_error * moving).sum() / moving.sum().clamp(min=1)

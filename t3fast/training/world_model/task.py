@@ -22,6 +22,7 @@ from t3fast.training.configs import Stage2Config
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.triplane_cache import cached_scene_triplanes
 from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatentCache, AlignedWindow, collate_aligned
+from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
 from t3fast.training.world_model.windows import (
@@ -109,7 +110,7 @@ class WorldModelTask:
 
     def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, float]]:
         if isinstance(batch, AlignedBatch):
-            return motion_loss(model, batch, self.cfg.loss)
+            return motion_loss(model, random_flips(batch) if self.cfg.data.latent_flips else batch, self.cfg.loss)
         core = model.module if hasattr(model, "module") else model
         steps = self.cfg.loss.rollout_steps
         if not 1 <= steps <= NUM_FUTURE:

@@ -1,0 +1,58 @@
+"""Learning curves of a stage-2 run: ``python benchmarks/tools/plot_stage2_curves.py METRICS.jsonl OUT.png``.
+
+Left: the training terms (latent loss next to the copy forecast's, flow error on moving agents).
+Right: validation Avg mIoU every ``eval_every`` steps, along the planned and along the true ego
+poses, with the baselines scored once at step 0 on the same windows as flat lines.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+BASELINES = {"warp_gt_ego": "warp, true poses", "track_gt_ego": "tracker, true poses",
+             "warp_const_vel": "warp, const. velocity", "track_const_vel": "tracker, const. velocity"}
+
+
+def main(metrics: Path, out: Path) -> None:
+    records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+    train = [r for r in records if r["event"] == "train"]
+    evals = [r for r in records if r["event"] == "eval"]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    steps = [r["step"] for r in train]
+    left.plot(steps, [r["values"]["latent"] for r in train], label="latent loss")
+    left.plot(steps, [r["values"]["copy_latent"] for r in train], label="latent loss of the copy forecast", ls="--")
+    left.set_xlabel("step")
+    left.set_ylabel("weighted L1 + L2")
+    twin = left.twinx()
+    twin.plot(steps, [r["values"]["flow_moving"] for r in train], color="tab:red", alpha=0.6,
+              label="displacement error on moving agents")
+    twin.set_ylabel("plane cells")
+    left.legend(loc="upper left", fontsize=8)
+    twin.legend(loc="upper right", fontsize=8)
+    left.set_title("training (batch means)")
+    at = [r["step"] for r in evals]
+    right.plot(at, [r["values"]["gt_ego_miou_avg"] for r in evals], "o-", label="t3former, true poses")
+    right.plot(at, [r["values"]["miou_avg"] for r in evals], "o-", label="t3former, planned poses")
+    first = evals[0]["values"]
+    for (key, name), colour in zip(BASELINES.items(), ("tab:green", "tab:red", "tab:purple", "tab:brown")):
+        if f"{key}_miou_avg" in first:
+            right.axhline(first[f"{key}_miou_avg"], ls="--", color=colour, label=name)
+    right.set_xlabel("step")
+    right.set_ylabel("Avg mIoU (val)")
+    right.legend(fontsize=8)
+    right.set_title("validation")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        raise SystemExit(__doc__.splitlines()[0])
+    main(Path(sys.argv[1]), Path(sys.argv[2]))

@@ -85,6 +85,7 @@ class FlowUNet(nn.Module):
 
 
 MOVING_CELLS = 0.5  # a displacement of at least this many cells counts as moving content
+MATCH_FEATURES = 32  # channels the matching costs are compressed to before the UNet
 
 
 def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
@@ -135,8 +136,8 @@ class FlowTriplaneForecaster(nn.Module):
         self.channels, self.history, self.steps, self.flow_scale, self.bev = channels, history, steps, flow_scale, bev
         self.match_radius, self.match_pairs = match_radius, min(2, history - 1)
         costs = self.match_pairs * (2 * match_radius + 1) ** 2
-        self.match_stem = nn.Sequential(nn.Conv2d(costs, 32, 1), nn.SiLU())  # compress before the 3x3 convs
-        self.unet = FlowUNet((2 * history - 1) * channels + 32, steps * (2 + channels), widths)
+        self.match_stem = nn.Sequential(nn.Conv2d(costs, MATCH_FEATURES, 1), nn.SiLU())  # compress before the 3x3 convs
+        self.unet = FlowUNet((2 * history - 1) * channels + MATCH_FEATURES, steps * (2 + channels), widths)
         head = self.unet.head
         with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
             head.weight.zero_()
@@ -170,6 +171,7 @@ class FlowTriplaneForecaster(nn.Module):
             nxt = delta_fuse(deltas[:, k].contiguous(), moved.contiguous(), weight, self.fuse_bias)
             futures.append(Triplane(nxt, *(None if p is None else p[:, -1] for p in past[1:])))
         return futures, displacements, deltas
+
     def forward(
         self, past: Triplane, steps: int | None = None, first_step: int = 0
     ) -> tuple[list[Triplane], list[Triplane]]:

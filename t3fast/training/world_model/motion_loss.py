@@ -39,18 +39,18 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) ->
     """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc)."""
     planes = batch.planes
     history = planes.map(lambda p: p[:, : PRESENT + 1])
-    futures, flows, _ = model(history, batch.past_actions, motion=True)
+    futures, displacements, _ = model(history, batch.past_actions, motion=True)
     pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
     steps = pred.shape[1]
     target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]
     present = planes.xy[:, PRESENT : PRESENT + 1]
-    flow, moving, static, agents = (m[:, :steps] for m in agent_motion(batch.boxes, batch.box_valid,
-                                                                       tuple(pred.shape[-2:])))
+    target_disp, moving, static, agents = (m[:, :steps] for m in agent_motion(batch.boxes, batch.box_valid,
+                                                                              tuple(pred.shape[-2:])))
     weight = 1.0 + loss.agent_weight * agents.float()
     latent = _latent_error(pred, target, weight, loss.gamma)
-    flow_error = (flows - flow).abs().sum(2)
+    flow_error = (displacements - target_disp).abs().sum(2)
     flow_moving = (flow_error * moving).sum() / moving.sum().clamp(min=1)
-    flow_static = (flows.abs().sum(2) * static).sum() / static.sum().clamp(min=1)
+    flow_static = (displacements.abs().sum(2) * static).sum() / static.sum().clamp(min=1)
     flow_term = flow_moving + loss.static_flow_weight * flow_static
     total = latent + loss.flow_weight * flow_term
     with torch.no_grad():

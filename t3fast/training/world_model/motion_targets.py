@@ -62,16 +62,17 @@ def agent_motion(
     points = plane_cell_centres(shape, boxes.device).view(1, 1, h * w, 2)  # [1, 1, HW, 2]
     now = boxes[:, PRESENT]  # [B, A, 7]
 
-    def inside(box: Tensor) -> Tensor:
-        """Cells inside each box ``[B, A, 7]``: ``[B, A, HW]``."""
+    def inside(box: Tensor) -> tuple[Tensor, Tensor]:
+        """Cells inside each box ``[B, A, 7]``: mask ``[B, A, HW]`` and the cells' coordinates on
+        each box ``[B, A, HW, 2]``."""
         local = _rotate(points - box[:, :, None, :2], -box[:, :, None, 6])
-        return (local.abs() <= box[:, :, None, 3:5] / 2 + margin).all(-1)
+        return (local.abs() <= box[:, :, None, 3:5] / 2 + margin).all(-1), local
 
-    in_now = inside(now) & box_valid[:, PRESENT, :, None]
+    in_now, local = inside(now)
+    in_now = in_now & box_valid[:, PRESENT, :, None]
     # a cell covered by several boxes takes the last one (boxes of distinct agents rarely overlap)
     owner = torch.where(in_now, torch.arange(a, device=boxes.device).view(1, a, 1), -1).amax(1)  # [B, HW]
     covered_now = owner >= 0
-    local = _rotate(points - now[:, :, None, :2], -now[:, :, None, 6])  # [B, A, HW, 2] on each box now
     displacements, moving, static, agents = [], [], [], []
     for frame in range(PRESENT + 1, t):
         future = boxes[:, frame]
@@ -84,6 +85,6 @@ def agent_motion(
         displacements.append(disp)
         moving.append(moved)
         static.append(~covered_now | (seen & ~moved))
-        agents.append(covered_now | (inside(future) & box_valid[:, frame, :, None]).any(1))
+        agents.append(covered_now | (inside(future)[0] & box_valid[:, frame, :, None]).any(1))
     disp = torch.stack(displacements, 1).view(b, -1, h, w, 2).permute(0, 1, 4, 2, 3)
     return (disp, *(torch.stack(m, 1).view(b, -1, h, w) for m in (moving, static, agents)))

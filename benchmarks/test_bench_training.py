@@ -11,7 +11,9 @@ import dataclasses
 import pytest
 import torch
 
+from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving, SyntheticFrames
+from t3fast.models.ego_motion import planar_poses
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
 from t3fast.presets import autoencoder_size, preset, world_model_size
@@ -80,8 +82,10 @@ def _flow_step(batch_size: int):
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     sample = SyntheticDriving("val", 1, 20, stride=9)[0]
     planes, _ = ego_aligned_window(model, sample.occ[None], sample.ego_poses[None])
+    poses = planar_poses(sample.ego_poses[None, : PRESENT + 1], PRESENT)
+    velocity = model.agent_velocity(sample.occ[None, : PRESENT + 1], poses)
     window = AlignedWindow(Triplane(*(p[0] for p in planes)), sample.boxes, sample.box_valid, sample.past_actions,
-                           sample.future_actions)
+                           sample.future_actions, velocity[0])
     batch = collate_aligned([window] * batch_size)
 
     def step():

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from t3fast.data.classes import AGENT_CLASSES, FREE, NUM_CLASSES, VOXEL_SIZE
+from t3fast.data.classes import AGENT_CLASSES, FREE, VOXEL_SIZE
+from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents
 from t3fast.models.ego_motion import extrapolate_poses, planar_poses, unwarp_sequence, warp_sequence
 
 
@@ -40,64 +38,7 @@ def warp_const_vel(past_occ: Tensor, ego_poses: Tensor, steps: int = 6) -> Tenso
     return warp_present(past_occ, extrapolate_poses(past, steps))
 
 
-def bev_components(mask: Tensor) -> tuple[Tensor, int]:
-    """8-connected components of a BEV mask ``[X, Y]`` (bool): labels int64 ``[X, Y]``, 0 off the
-    mask and 1..n on it, and n. Label propagation: every cell takes the largest label of its
-    3x3 neighbourhood (max-pooling) and then the label its label points at (pointer jumping,
-    so a component of diameter d converges in about log d rounds rather than d)."""
-    nx, ny = mask.shape
-    if not bool(mask.any()):
-        return torch.zeros(nx, ny, dtype=torch.long, device=mask.device), 0
-    keep = mask.float()
-    # labels are 1 + the flat index of a cell of the same component (exact in float32 below 2^24)
-    labels = (torch.arange(1, nx * ny + 1, dtype=torch.float32, device=mask.device).view(nx, ny) * keep)
-    while True:
-        pooled = F.max_pool2d(labels[None, None], 3, stride=1, padding=1)[0, 0] * keep
-        flat = pooled.flatten()
-        jumped = torch.maximum(flat, flat[(flat.long() - 1).clamp(min=0)] * keep.flatten()).view(nx, ny)
-        if torch.equal(jumped, labels):
-            break
-        labels = jumped
-    _, inverse = torch.unique(labels.long(), return_inverse=True)  # 0 (off the mask) stays 0
-    return inverse, int(inverse.max())
-
-
-def _agents(frame: Tensor, classes: Tensor) -> dict[str, Tensor]:
-    """The agents of a frame ``[X, Y, Z]``: their voxels (``ijz`` ``[V, 3]``, ``label`` ``[V]``,
-    ``component`` ``[V]`` 0-based) and, per connected BEV component of the columns holding an
-    agent voxel, its majority class ``cls`` ``[n]`` and column centroid ``centroid`` ``[n, 2]`` (cells)."""
-    is_agent = torch.isin(frame, classes)
-    ids, n = bev_components(is_agent.any(-1))
-    ijz = is_agent.nonzero()
-    label = frame[is_agent].long()
-    component = ids[ijz[:, 0], ijz[:, 1]] - 1
-    votes = torch.zeros(n, NUM_CLASSES, dtype=torch.long, device=frame.device)
-    votes.index_put_((component, label), torch.ones_like(label), accumulate=True)
-    cols = (ids > 0).nonzero()
-    col_id = ids[cols[:, 0], cols[:, 1]] - 1
-    size = torch.bincount(col_id, minlength=n).double()
-    centroid = torch.stack([torch.bincount(col_id, cols[:, a].double(), minlength=n) for a in (0, 1)], -1)
-    return dict(ijz=ijz, label=label, component=component, cls=votes.argmax(1),
-                centroid=centroid / size.clamp(min=1)[:, None], mask=is_agent)
-
-
-def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
-    """Per present component, its velocity in cells per step ``[n, 2]``: the displacement of its
-    centroid from the nearest previous component of its class (both in the present frame);
-    0 without one within ``gate_cells``."""
-    n = present["cls"].shape[0]
-    velocity = torch.zeros(n, 2, dtype=torch.float64, device=present["cls"].device)
-    if n == 0 or previous["cls"].shape[0] == 0:
-        return velocity
-    diff = present["centroid"][:, None] - previous["centroid"][None]  # [n, m, 2]
-    dist = diff.norm(dim=-1).masked_fill(present["cls"][:, None] != previous["cls"][None], math.inf)
-    nearest, match = dist.min(1)
-    found = nearest <= gate_cells
-    velocity[found] = diff[found, match[found]]
-    return velocity
-
-
-def track_agents(past_occ: Tensor, past_poses: Tensor, future_poses: Tensor, gate: float = 4.0,
+def track_agents(past_occ: Tensor, past_poses: Tensor, future_poses: Tensor, gate: float = TRACK_GATE,
                  classes: tuple[int, ...] = AGENT_CLASSES) -> Tensor:
     """Classical tracker: every agent moved along its velocity, then the scene into each future
     ego frame.
@@ -126,7 +67,7 @@ def track_agents(past_occ: Tensor, past_poses: Tensor, future_poses: Tensor, gat
     scenes = []
     for n in range(b):
         present = past_occ[n, -1]
-        now, before = _agents(present, wanted), _agents(previous[n], wanted)
+        now, before = frame_agents(present, wanted), frame_agents(previous[n], wanted)
         velocity = agent_velocities(now, before, gate / VOXEL_SIZE)
         shift = torch.round(k[:, None, None] * velocity[None]).long()  # [S, n, 2] cells
         base = present.masked_fill(now["mask"], FREE)

@@ -83,7 +83,8 @@ class SharedRollout:
             model = self.model
             poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
             past = model.encode_history(batch.past_occ, poses)
-            futures, _, planned = model.rollout(past, actions, NUM_FUTURE)
+            velocity = model.agent_velocity(batch.past_occ, poses)
+            futures, _, planned = model.rollout(past, actions, NUM_FUTURE, velocity=velocity)
             present = past.map(lambda p: p[:, -1])
             frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
             self._out = dict(futures=futures, actions=planned, poses=frame_poses, present=present,
@@ -266,8 +267,9 @@ def _reset_peak_rss() -> bool:
 def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 1, iters: int = 3) -> dict:
     """``{"fps", "peak_memory_mb", "params"}`` of the forecasting step at batch 1.
 
-    The step is forecaster + planner + decoding of the 6 future frames to labels, from the
-    encoded past frames (a streaming user encodes each new frame once). Peak memory: on CUDA
+    The step is the agents' velocities (a tracker prior), forecaster + planner + decoding of the
+    6 future frames to labels, from the encoded past frames (a streaming user encodes each new
+    frame once). Peak memory: on CUDA
     the allocator's peak during the step (tensors only, weights included); on CPU the peak
     resident set of the whole process during the step (Linux; weights, libraries and
     interpreter included), else None.
@@ -280,7 +282,8 @@ def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 1, 
     present = batch.past_occ[:1, -1]
 
     def step() -> None:
-        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses)
+        velocity = model.agent_velocity(batch.past_occ[:1], poses)  # from the newest frame: part of the step
+        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses, velocity=velocity)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 

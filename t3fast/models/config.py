@@ -122,6 +122,7 @@ class WorldModelConfig:
     flow_widths: list[int] = field(default_factory=lambda: [16, 32, 48, 64, 96])  # the flow forecaster's UNet
     flow_scale: float = 2.0  # plane cells per unit of its displacement output, per step
     match_radius: int = 6  # its matching costs look this many plane cells around each cell
+    tracker_prior: bool = False  # it corrects the tracker's agent velocities instead of finding motion alone
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -172,7 +173,7 @@ class WorldModelConfig:
             raise ConfigError(f"'planner_heads' ({self.planner_heads}) must divide 'd_act' ({self.d_act})")
         check_int("planner_layers", self.planner_layers, 1, MAX_DEPTH)
         check_int("past_actions", self.past_actions, 1)
-        for key in ("predict_delta", "ego_aligned", "static_from_present"):
+        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

@@ -117,6 +117,11 @@ class FlowTriplaneForecaster(nn.Module):
         match_radius: the matching costs compare each cell with the cells up to this many
             cells away in the previous frame (the fastest agents move ~7 cells a step).
         bev: the latent has only the xy plane.
+        tracker_prior: start from the tracker's motion: the agents' velocities measured between
+            the last two observed frames (:func:`~t3fast.models.agent_velocity.agent_velocity_field`,
+            ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
+            ``(k + 1) * velocity`` plus the learned correction. Untrained, such a forecaster is
+            the tracker in the latent; training has to improve on it, not rediscover it.
     """
 
     def __init__(
@@ -129,15 +134,18 @@ class FlowTriplaneForecaster(nn.Module):
         flow_scale: float = 2.0,
         match_radius: int = 6,
         bev: bool = False,
+        tracker_prior: bool = False,
     ):
         super().__init__()
         if history < 2:
             raise ValueError(f"FlowTriplaneForecaster needs at least 2 history frames to see motion, got {history}")
         self.channels, self.history, self.steps, self.flow_scale, self.bev = channels, history, steps, flow_scale, bev
         self.match_radius, self.match_pairs = match_radius, min(2, history - 1)
+        self.tracker_prior = tracker_prior
         costs = self.match_pairs * (2 * match_radius + 1) ** 2
         self.match_stem = nn.Sequential(nn.Conv2d(costs, MATCH_FEATURES, 1), nn.SiLU())  # compress before the 3x3 convs
-        self.unet = FlowUNet((2 * history - 1) * channels + MATCH_FEATURES, steps * (2 + channels), widths)
+        self.unet = FlowUNet((2 * history - 1) * channels + MATCH_FEATURES + 2 * tracker_prior, steps * (2 + channels),
+                             widths)
         head = self.unet.head
         with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
             head.weight.zero_()
@@ -148,20 +156,29 @@ class FlowTriplaneForecaster(nn.Module):
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
         self.fill = nn.Parameter(torch.zeros(channels))
 
-    def predict(self, past: Triplane) -> tuple[list[Triplane], Tensor, Tensor]:
-        """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) -> (the ``steps``
-        future triplanes, forward displacements ``[B, steps, 2, H, W]`` of the present cells in
-        plane cells, Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
+    def predict(self, past: Triplane, velocity: Tensor | None = None) -> tuple[list[Triplane], Tensor, Tensor]:
+        """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) and, with
+        ``tracker_prior``, the agents' velocities ``[B, 2, H, W]`` (plane cells per step) -> (the
+        ``steps`` future triplanes, forward displacements ``[B, steps, 2, H, W]`` of the present
+        cells in plane cells, Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
         xy = past.xy[:, -self.history :]
         b, t, c, h, w = xy.shape
         if t < self.history:
             raise ValueError(f"FlowTriplaneForecaster: {self.history} history frames needed, got {t}")
+        if self.tracker_prior and (velocity is None or velocity.shape != (b, 2, h, w)):
+            got = None if velocity is None else list(velocity.shape)
+            raise ValueError(f"FlowTriplaneForecaster(tracker_prior=True) needs the agents' velocities "
+                             f"[{b}, 2, {h}, {w}] (T3Former.agent_velocity), got {got}")
         costs = torch.cat([matching_costs(xy[:, -1 - p], xy[:, -2 - p], self.match_radius)
                            for p in range(self.match_pairs)], dim=1)
-        inputs = torch.cat([xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)], dim=1)
-        out = self.unet(inputs).view(b, self.steps, 2 + c, h, w)
-        scale = self.flow_scale * torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype)
-        displacements = out[:, :, :2] * scale.view(1, -1, 1, 1, 1)
+        inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)]
+        if self.tracker_prior:
+            inputs.append(velocity.to(xy.dtype) / self.flow_scale)
+        out = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, 2 + c, h, w)
+        k = torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype).view(1, -1, 1, 1, 1)
+        displacements = out[:, :, :2] * self.flow_scale * k
+        if self.tracker_prior:
+            displacements = displacements + velocity.to(out.dtype).unsqueeze(1) * k
         deltas = out[:, :, 2:]
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
@@ -173,16 +190,16 @@ class FlowTriplaneForecaster(nn.Module):
         return futures, displacements, deltas
 
     def forward(
-        self, past: Triplane, steps: int | None = None, first_step: int = 0
+        self, past: Triplane, steps: int | None = None, first_step: int = 0, velocity: Tensor | None = None
     ) -> tuple[list[Triplane], list[Triplane]]:
         """The forecaster interface of :class:`T3Former`: (the first ``steps`` future
         triplanes, their changes from the present). All steps come from the observed history,
-        so rollouts start at the present (``first_step`` 0)."""
+        so rollouts start at the present (``first_step`` 0). ``velocity``: see :meth:`predict`."""
         steps = self.steps if steps is None else steps
         if first_step != 0 or not 1 <= steps <= self.steps:
             raise ValueError(f"FlowTriplaneForecaster predicts future steps 0..{self.steps - 1} from the observed "
                              f"history at once; asked for {steps} steps from step {first_step}")
-        futures = self.predict(past)[0][:steps]
+        futures = self.predict(past, velocity)[0][:steps]
         present = past.map(lambda p: p[:, -1])
         changes = [Triplane(*(None if f is None else f - p for f, p in zip(fut, present))) for fut in futures]
         return futures, changes

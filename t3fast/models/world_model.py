@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
 from t3fast.errors import UsageError
+from t3fast.models.agent_velocity import agent_velocity_field
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -192,6 +193,7 @@ class T3Former(nn.Module):
             flow_scale=world.flow_scale,
             match_radius=world.match_radius,
             bev=bev,
+            tracker_prior=world.tracker_prior,
         ) if world.forecaster == "flow" else DeltaTriplaneForecaster(
             channels=autoencoder.channels,
             plane_shape=autoencoder.plane_shape,
@@ -241,6 +243,18 @@ class T3Former(nn.Module):
         return self.encode_sequence(occupancy)
 
     @torch.no_grad()
+    def agent_velocity(self, occupancy: Tensor, poses: Tensor) -> Tensor | None:
+        """The agents' velocities a forecaster with a tracker prior starts from
+        (:func:`~t3fast.models.agent_velocity.agent_velocity_field`, ``[B, 2, H, W]`` plane cells
+        per step), measured between the last two past frames ``occupancy[:, -2:]`` (labels
+        ``[B, T, X, Y, Z]``) moved into the present frame with ``poses`` ``[B, T, 3]``; None for a
+        forecaster without one."""
+        if not getattr(self.forecaster, "tracker_prior", False):
+            return None
+        previous = warp_sequence(occupancy[:, -2:-1], poses[:, -2:-1])[:, 0]
+        return agent_velocity_field(occupancy[:, -1], previous, self.encoder.config.plane_shape[:2])
+
+    @torch.no_grad()
     def decode_frames(self, futures: list[Triplane], poses: Tensor) -> Tensor:
         """Future triplanes -> labels uint8 ``[B, S, X, Y, Z]``, each frame in the ego frame of
         its pose ``poses[:, k]`` (``[B, S, 3]`` in the present frame; ``ego_aligned`` only)."""
@@ -272,16 +286,24 @@ class T3Former(nn.Module):
                     reference[b, k].view(-1)[index] = self.decoder.predict(planes, points).view(-1)
         return reference
 
+    def _forecaster(self, past: Triplane, steps: int, first_step: int = 0,
+                    velocity: Tensor | None = None) -> tuple[list[Triplane], list[Triplane]]:
+        if isinstance(self.forecaster, FlowTriplaneForecaster):
+            return self.forecaster(past, steps, first_step, velocity)
+        return self.forecaster(past, steps, first_step)
+
     def rollout(
-        self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0
+        self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0, velocity: Tensor | None = None
     ) -> tuple[list[Triplane], list[Triplane], Tensor]:
         """Future triplanes, their changes, and displacements ``[B, steps, 2]`` (differentiable).
 
         Args:
             past: planes ``[B, T, C, H, W]`` of the frames before future step ``first_step``.
             past_actions: ``[B, T_p + first_step, 2]`` displacements so far (present frame).
+            velocity: the agents' velocities of :meth:`agent_velocity` (forecasters with a
+                tracker prior need them).
         """
-        futures, deltas = self.forecaster(past, steps, first_step)
+        futures, deltas = self._forecaster(past, steps, first_step, velocity)
         present = past.map(lambda p: p[:, -1])
         # The planning loss does not reach the forecaster: its gradient through the predicted
         # triplanes competes with the triplane loss and stalls forecasting (see the tests).
@@ -291,7 +313,7 @@ class T3Former(nn.Module):
 
     def forward(
         self, past: Triplane, past_actions: Tensor, steps: int = 6, first_step: int = 0,
-        points: list[Tensor] | None = None, motion: bool = False,
+        points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
     ) -> tuple[list[Triplane], Tensor, list[Tensor] | None]:
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
@@ -300,13 +322,13 @@ class T3Former(nn.Module):
         ``motion`` (the flow forecaster), instead its
         :meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.predict`: (future
         triplanes, forward displacements of the present cells ``[B, S, 2, H, W]``, Deltas
-        ``[B, S, C, H, W]``); the planner is not run.
+        ``[B, S, C, H, W]``); the planner is not run. ``velocity``: as for :meth:`rollout`.
         """
         if motion:
             if not isinstance(self.forecaster, FlowTriplaneForecaster):
                 raise ValueError("motion=True needs the flow forecaster (world_config.forecaster = 'flow')")
-            return self.forecaster.predict(past)
-        futures, _, actions = self.rollout(past, past_actions, steps, first_step)
+            return self.forecaster.predict(past, velocity)
+        futures, _, actions = self.rollout(past, past_actions, steps, first_step, velocity)
         logits = None if points is None else [self.decoder(t, p) for t, p in zip(futures, points)]
         return futures, actions, logits
 
@@ -342,7 +364,8 @@ class T3Former(nn.Module):
                              f"{t} frames of past_occupancy (B = {b}), got shape {list(past_motion.shape)}")
         poses, actions = split_past_motion(past_motion)
         past = self.encode_history(past_occupancy, poses)
-        return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses)
+        return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses,
+                                            self.agent_velocity(past_occupancy, poses))
 
     def _check_history(self, name: str, frames: int) -> None:
         """The forecaster was trained on ``history`` past frames (the present included); fewer
@@ -355,14 +378,16 @@ class T3Former(nn.Module):
     @torch.no_grad()
     def forecast_from_triplanes(
         self, past: Triplane, past_actions: Tensor, steps: int = 6, future_actions: Tensor | None = None,
-        present: Tensor | None = None, past_poses: Tensor | None = None,
+        present: Tensor | None = None, past_poses: Tensor | None = None, velocity: Tensor | None = None,
     ) -> Forecast:
         """The forecasting step from encoded past frames (planes ``[B, T, C, H, W]`` from
         :meth:`encode_history`): forecaster, planner (unless ``future_actions`` are given) and
         decoding to labels. A streaming user encodes each new frame once (papers'
         formulation) and keeps the planes of the previous ones. ``present``: the present
         frame's labels ``[B, X, Y, Z]``, for :func:`observed_static`; ``past_poses``: the past
-        planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`).
+        planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`);
+        ``velocity``: the agents' velocities (:meth:`agent_velocity`) for a forecaster with a
+        tracker prior.
         Refuses (:class:`~t3fast.errors.UsageError`) a number of past frames ``T`` other
         than the model's ``history`` and non-finite motion, as :meth:`forecast` does."""
         self._check_history("past", past.xy.shape[1])
@@ -375,10 +400,10 @@ class T3Former(nn.Module):
         else:
             check_future_actions(future_actions, past.xy.shape[0])
         if future_actions is None:
-            futures, _, actions = self.rollout(past, past_actions, steps)
+            futures, _, actions = self.rollout(past, past_actions, steps, velocity=velocity)
             poses = planned_poses(actions, past_actions, past_poses)
         else:
-            futures, _ = self.forecaster(past, future_actions.shape[1])
+            futures, _ = self._forecaster(past, future_actions.shape[1], velocity=velocity)
             if future_actions.shape[-1] == 3:  # given as poses
                 poses, actions = future_actions, displacements_from_poses(future_actions)
             else:

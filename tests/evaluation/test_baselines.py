@@ -6,7 +6,6 @@ import torch
 
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, MANMADE, PEDESTRIAN, TRUCK
 from t3fast.evaluation.baselines import (
-    bev_components,
     constant_velocity,
     copy_paste,
     track_const_vel,
@@ -14,6 +13,7 @@ from t3fast.evaluation.baselines import (
     warp_const_vel,
     warp_present,
 )
+from t3fast.models.agent_velocity import bev_components
 
 
 def test_copy_paste_repeats_the_present_frame():

@@ -5,10 +5,13 @@ The encoder is frozen in stage 2, so a window's 11 frames moved into its present
 planes. Encoding them costs more than the forecaster's whole step on a CPU, so each window is
 encoded once, stored in float16 (one file per window, about 2.3 MB with the small
 autoencoder), and read by every later run and ablation. A window's file also holds what the
-motion targets are made from: the agents' boxes and the ego's displacements.
+motion targets are made from (the agents' boxes and the ego's displacements) and the agents'
+velocities measured between the last two past frames
+(:func:`~t3fast.models.agent_velocity.agent_velocity_field`, the tracker prior).
 
 The cache folder's name hashes the encoder's weights and the data of the split's first scene,
-so a new autoencoder or a changed world builds a new cache instead of reading stale planes.
+so a new autoencoder or a changed world builds a new cache instead of reading stale planes;
+:data:`CACHE_FORMAT` changes with what a window's file holds.
 Building is resumable: windows whose file exists are skipped, and every file is written
 atomically.
 """
@@ -24,12 +27,17 @@ from torch import Tensor
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
+from t3fast.data.classes import FREE, IGNORE
+from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.models.agent_velocity import agent_velocity_field
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
 from t3fast.training.triplane_cache import encoder_digest
 from t3fast.training.world_model.windows import ego_aligned_window
+
+CACHE_FORMAT = 2  # 2: the agents' velocities are stored with each window
 
 
 def world_digest(windows: SyntheticDriving) -> str:
@@ -46,13 +54,15 @@ def world_digest(windows: SyntheticDriving) -> str:
 class AlignedWindow:
     """One cached window: planes ``[11, C, H, W]`` (float32 once read) of its frames in the
     present ego frame; ``boxes`` ``[11, A, 7]`` and ``box_valid`` ``[11, A]`` in the present
-    frame; ``past_actions`` ``[4, 2]``, ``future_actions`` ``[6, 2]``."""
+    frame; ``past_actions`` ``[4, 2]``, ``future_actions`` ``[6, 2]``; the agents' ``velocity``
+    ``[2, H, W]`` (plane cells per step)."""
 
     planes: Triplane
     boxes: Tensor
     box_valid: Tensor
     past_actions: Tensor
     future_actions: Tensor
+    velocity: Tensor
 
 
 class AlignedLatentCache(Dataset):
@@ -70,7 +80,8 @@ class AlignedLatentCache(Dataset):
             raise ValueError("AlignedLatentCache stores windows as generated: pass flip=False")
         self.windows, self.model = windows, model
         split = windows.scenes.split
-        key = f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{split}-{windows.scenes.frames_per_scene}f"
+        key = (f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{split}-{windows.scenes.frames_per_scene}f"
+               f"-v{CACHE_FORMAT}")
         self.root = Path(cache_dir) / f"aligned-{key}"
 
     def path(self, index: int) -> Path:
@@ -88,7 +99,11 @@ class AlignedLatentCache(Dataset):
         device = next(self.model.parameters()).device
         for index in tqdm(todo, desc="encode aligned windows", unit="window", disable=not progress or not todo):
             sample = self.windows[index]
-            planes, _ = ego_aligned_window(self.model, sample.occ[None].to(device), sample.ego_poses[None].to(device))
+            occ, poses = sample.occ[None].to(device), sample.ego_poses[None].to(device)
+            planes, moved = ego_aligned_window(self.model, occ, poses)
+            recent = moved[0, PRESENT - 1 : PRESENT + 1]
+            recent = recent.masked_fill(recent == IGNORE, FREE)  # what a past frame did not see is free
+            velocity = agent_velocity_field(recent[1:], recent[:1], tuple(planes.xy.shape[-2:]))[0]
             save_checkpoint(
                 {
                     "planes": tuple(None if p is None else p[0].half().cpu() for p in planes),
@@ -96,6 +111,7 @@ class AlignedLatentCache(Dataset):
                     "box_valid": sample.box_valid,
                     "past_actions": sample.past_actions,
                     "future_actions": sample.future_actions,
+                    "velocity": velocity.cpu(),
                 },
                 self.path(index),
             )
@@ -110,24 +126,26 @@ class AlignedLatentCache(Dataset):
             raise FileNotFoundError(f"{path}: window {index} is not cached yet (build() first)")
         state = load_checkpoint(path)
         planes = Triplane(*(None if p is None else p.float() for p in state["planes"]))
-        return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"])
+        return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"],
+                             state["velocity"])
 
 
 @dataclass
 class AlignedBatch:
     """Cached windows collated: planes ``[B, 11, C, H, W]``, ``boxes`` ``[B, 11, A, 7]`` (A
     padded with invalid boxes), ``box_valid`` ``[B, 11, A]``, actions ``[B, 4, 2]``,
-    ``[B, 6, 2]``."""
+    ``[B, 6, 2]``, ``velocity`` ``[B, 2, H, W]``."""
 
     planes: Triplane
     boxes: Tensor
     box_valid: Tensor
     past_actions: Tensor
     future_actions: Tensor
+    velocity: Tensor
 
     def to(self, device: torch.device | str) -> AlignedBatch:
         return AlignedBatch(self.planes.map(lambda p: p.to(device)), self.boxes.to(device), self.box_valid.to(device),
-                            self.past_actions.to(device), self.future_actions.to(device))
+                            self.past_actions.to(device), self.future_actions.to(device), self.velocity.to(device))
 
 
 def collate_aligned(items: list[AlignedWindow]) -> AlignedBatch:
@@ -145,4 +163,5 @@ def collate_aligned(items: list[AlignedWindow]) -> AlignedBatch:
         torch.stack([pad(it.box_valid) for it in items]),
         torch.stack([it.past_actions for it in items]),
         torch.stack([it.future_actions for it in items]),
+        torch.stack([it.velocity for it in items]),
     )

@@ -20,30 +20,36 @@ from t3fast.training.world_model.latent_cache import AlignedBatch
 
 
 def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: bool) -> AlignedBatch:
-    """``batch`` mirrored in x (x -> -x), then in y, then with x and y swapped (each if asked)."""
+    """``batch`` mirrored in x (x -> -x), then in y, then with x and y swapped (each if asked);
+    the agents' velocity field moves with the plane and its components turn with it."""
     if GRID_LOWER[0] != -GRID_UPPER[0] or GRID_LOWER[1] != -GRID_UPPER[1]:
         raise ValueError("flip_aligned needs a grid centred on the ego in x and y")
     xy, xz, yz = batch.planes
     boxes = batch.boxes.clone()
     past, future = batch.past_actions.clone(), batch.future_actions.clone()
+    velocity = batch.velocity
     yaw = boxes[..., 6]
     if flip_x:
         xy, xz = xy.flip(-2), None if xz is None else xz.flip(-2)
+        velocity = velocity.flip(-2) * velocity.new_tensor([-1.0, 1.0]).view(1, 2, 1, 1)
         boxes[..., 0], yaw = -boxes[..., 0], math.pi - yaw
         past[..., 0], future[..., 0] = -past[..., 0], -future[..., 0]
     if flip_y:
         xy, yz = xy.flip(-1), None if yz is None else yz.flip(-2)
+        velocity = velocity.flip(-1) * velocity.new_tensor([1.0, -1.0]).view(1, 2, 1, 1)
         boxes[..., 1], yaw = -boxes[..., 1], -yaw
         past[..., 1], future[..., 1] = -past[..., 1], -future[..., 1]
     if transpose:
         if xy.shape[-1] != xy.shape[-2]:
             raise ValueError(f"flip_aligned: x and y can only be swapped on a square plane, got {list(xy.shape[-2:])}")
         xy, xz, yz = xy.transpose(-2, -1), yz, xz
+        velocity = velocity.transpose(-2, -1)[:, [1, 0]]
         boxes[..., [0, 1]], yaw = boxes[..., [1, 0]], math.pi / 2 - yaw
         past, future = past[..., [1, 0]], future[..., [1, 0]]
     boxes[..., 6] = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
     boxes[~batch.box_valid] = 0.0
-    return AlignedBatch(Triplane(xy.contiguous(), xz, yz), boxes, batch.box_valid, past, future)
+    return AlignedBatch(Triplane(xy.contiguous(), xz, yz), boxes, batch.box_valid, past, future,
+                        velocity.contiguous())
 
 
 def random_flips(batch: AlignedBatch, generator: torch.Generator | None = None) -> AlignedBatch:

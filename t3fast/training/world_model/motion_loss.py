@@ -39,7 +39,7 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) ->
     """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc)."""
     planes = batch.planes
     history = planes.map(lambda p: p[:, : PRESENT + 1])
-    futures, displacements, _ = model(history, batch.past_actions, motion=True)
+    futures, displacements, _ = model(history, batch.past_actions, motion=True, velocity=batch.velocity)
     pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
     steps = pred.shape[1]
     target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]

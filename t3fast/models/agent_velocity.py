@@ -1,0 +1,123 @@
+"""Agents' velocities from the last two observed frames: the classical tracker's motion estimate.
+
+In the ego-aligned frame (the previous frame moved into the present one with the past poses),
+the columns holding an agent voxel (vehicles and humans) form 8-connected BEV components, each
+with its majority class; a present component's velocity is the displacement of its centroid
+from the nearest previous component of its class within a gate. This is what the tracker
+baselines move agents with (:mod:`t3fast.evaluation.baselines`), and what the flow forecaster
+starts from (:func:`agent_velocity_field`): it learns a correction to it rather than finding
+every agent's motion from scratch.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from t3fast.data.classes import AGENT_CLASSES, NUM_CLASSES, VOXEL_SIZE
+
+TRACK_GATE = 4.0  # metres an agent's centroid may move between two frames to be matched
+
+
+def bev_components(mask: Tensor) -> tuple[Tensor, int]:
+    """8-connected components of a BEV mask ``[X, Y]`` (bool): labels int64 ``[X, Y]``, 0 off the
+    mask and 1..n on it, and n. Label propagation: every cell takes the largest label of its
+    3x3 neighbourhood (max-pooling) and then the label its label points at (pointer jumping,
+    so a component of diameter d converges in about log d rounds rather than d)."""
+    nx, ny = mask.shape
+    if not bool(mask.any()):
+        return torch.zeros(nx, ny, dtype=torch.long, device=mask.device), 0
+    keep = mask.float()
+    # labels are 1 + the flat index of a cell of the same component (exact in float32 below 2^24)
+    labels = (torch.arange(1, nx * ny + 1, dtype=torch.float32, device=mask.device).view(nx, ny) * keep)
+    while True:
+        pooled = F.max_pool2d(labels[None, None], 3, stride=1, padding=1)[0, 0] * keep
+        flat = pooled.flatten()
+        jumped = torch.maximum(flat, flat[(flat.long() - 1).clamp(min=0)] * keep.flatten()).view(nx, ny)
+        if torch.equal(jumped, labels):
+            break
+        labels = jumped
+    _, inverse = torch.unique(labels.long(), return_inverse=True)  # 0 (off the mask) stays 0
+    return inverse, int(inverse.max())
+
+
+def frame_agents(frame: Tensor, classes: Tensor) -> dict[str, Tensor]:
+    """The agents of a frame ``[X, Y, Z]``: their voxels (``ijz`` ``[V, 3]``, ``label`` ``[V]``,
+    ``component`` ``[V]`` 0-based), the component map ``ids`` ``[X, Y]`` (0 off the agents, else
+    1 + component) and, per connected BEV component of the columns holding an agent voxel, its
+    majority class ``cls`` ``[n]`` and column centroid ``centroid`` ``[n, 2]`` (cells)."""
+    is_agent = torch.isin(frame, classes)
+    ids, n = bev_components(is_agent.any(-1))
+    ijz = is_agent.nonzero()
+    label = frame[is_agent].long()
+    component = ids[ijz[:, 0], ijz[:, 1]] - 1
+    votes = torch.zeros(n, NUM_CLASSES, dtype=torch.long, device=frame.device)
+    votes.index_put_((component, label), torch.ones_like(label), accumulate=True)
+    cols = (ids > 0).nonzero()
+    col_id = ids[cols[:, 0], cols[:, 1]] - 1
+    size = torch.bincount(col_id, minlength=n).double()
+    centroid = torch.stack([torch.bincount(col_id, cols[:, a].double(), minlength=n) for a in (0, 1)], -1)
+    return dict(ijz=ijz, label=label, component=component, ids=ids, cls=votes.argmax(1),
+                centroid=centroid / size.clamp(min=1)[:, None], mask=is_agent)
+
+
+def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
+    """Per present component, its velocity in cells per step ``[n, 2]``: the displacement of its
+    centroid from the nearest previous component of its class (both in the present frame);
+    0 without one within ``gate_cells``."""
+    n = present["cls"].shape[0]
+    velocity = torch.zeros(n, 2, dtype=torch.float64, device=present["cls"].device)
+    if n == 0 or previous["cls"].shape[0] == 0:
+        return velocity
+    diff = present["centroid"][:, None] - previous["centroid"][None]  # [n, m, 2]
+    dist = diff.norm(dim=-1).masked_fill(present["cls"][:, None] != previous["cls"][None], math.inf)
+    nearest, match = dist.min(1)
+    found = nearest <= gate_cells
+    velocity[found] = diff[found, match[found]]
+    return velocity
+
+
+def agent_velocity_field(
+    present: Tensor, previous: Tensor, plane_shape: tuple[int, int], gate: float = TRACK_GATE,
+    classes: tuple[int, ...] = AGENT_CLASSES,
+) -> Tensor:
+    """The tracker's agent velocities as a field on the xy plane.
+
+    Args:
+        present: labels ``[B, X, Y, Z]`` of the present frame.
+        previous: labels ``[B, X, Y, Z]`` of the frame before, moved into the present frame.
+        plane_shape: ``(H, W)`` of the xy plane, ``ceil(X / H)`` grid columns per cell along x
+            (likewise y).
+        gate: metres a centroid may move between the frames to be matched.
+    Returns:
+        ``[B, 2, H, W]`` float32: at each plane cell holding an agent column, the mean velocity
+        of those columns in plane cells per 0.5 s step (along H, along W); the ring of cells
+        around an agent takes the mean of its agent neighbours (the latent of an agent spreads
+        a little beyond its voxels); 0 elsewhere.
+    """
+    b, nx, ny, _ = present.shape
+    h, w = plane_shape
+    fx, fy = -(-nx // h), -(-ny // w)  # grid columns per plane cell (an odd grid's last cell has fewer)
+    if previous.shape != present.shape:
+        raise ValueError(f"agent_velocity_field: previous {list(previous.shape)} and present "
+                         f"{list(present.shape)} differ in shape")
+    wanted = torch.tensor(classes, dtype=present.dtype, device=present.device)
+    columns = present.new_zeros(b, 3, nx, ny, dtype=torch.float32)  # velocity (2) and agent count
+    for n in range(b):
+        now, before = frame_agents(present[n], wanted), frame_agents(previous[n], wanted)
+        velocity = agent_velocities(now, before, gate / VOXEL_SIZE).float()
+        ids = now["ids"]
+        on = ids > 0
+        columns[n, :2, on] = velocity[ids[on] - 1].T
+        columns[n, 2] = on.float()
+    pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
+    count = pooled[:, 2:]
+    field = pooled[:, :2] / count.clamp(min=1e-6) * count.gt(0)
+    ring = F.avg_pool2d(torch.cat([field * count.gt(0), count.gt(0).float()], 1), 3, stride=1, padding=1,
+                        count_include_pad=False)
+    grown = ring[:, :2] / ring[:, 2:].clamp(min=1e-6) * ring[:, 2:].gt(0)
+    field = torch.where(count.gt(0), field, grown)
+    return field / torch.tensor([fx, fy], device=field.device, dtype=field.dtype).view(1, 2, 1, 1)

@@ -1,0 +1,57 @@
+"""The tracker's agent velocities as a field on the xy plane (the flow forecaster's prior)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
+from t3fast.models.agent_velocity import agent_velocity_field
+
+
+def _frames(x: int = 20, y: int = 20, z: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    present = torch.full((1, x, y, z), FREE, dtype=torch.uint8)
+    present[..., 0] = DRIVEABLE_SURFACE
+    return present, present.clone()
+
+
+def test_a_moving_car_carries_its_velocity_in_plane_cells_and_the_rest_stands_still():
+    present, previous = _frames()
+    previous[0, 2:6, 8:10, 1:3] = CAR  # 4 grid cells forward and 2 to the right per step
+    present[0, 6:10, 10:12, 1:3] = CAR
+    field = agent_velocity_field(present, previous, (10, 10))
+    assert field.shape == (1, 2, 10, 10) and field.dtype == torch.float32
+    car = torch.zeros(10, 10, dtype=torch.bool)
+    car[3:5, 5:6] = True  # the plane cells of the car's columns (2 grid cells each)
+    assert torch.allclose(field[0, :, car], torch.tensor([[2.0], [1.0]]))
+    ring = torch.nn.functional.max_pool2d(car[None].float(), 3, 1, 1)[0].bool() & ~car
+    assert torch.allclose(field[0, :, ring], torch.tensor([[2.0], [1.0]]))  # its latent spreads a cell
+    assert (field[0, :, ~(car | ring)] == 0).all()
+
+
+def test_an_unmatched_or_standing_agent_has_no_velocity():
+    present, previous = _frames()
+    present[0, 2:4, 2:4, 1] = PEDESTRIAN  # standing
+    previous[0, 2:4, 2:4, 1] = PEDESTRIAN
+    present[0, 14:18, 14:16, 1] = CAR  # no car in the previous frame: nothing to match
+    previous[0, 14:18, 4:6, 1] = PEDESTRIAN  # another class does not match
+    assert (agent_velocity_field(present, previous, (10, 10)) == 0).all()
+    far = previous.clone()
+    far[0, 2:6, 14:16, 1] = CAR  # 12 grid cells = 4.8 m away: beyond the 4 m gate
+    assert (agent_velocity_field(present, far, (10, 10))[0, :, 7:9, 7] == 0).all()
+    assert (agent_velocity_field(present, far, (10, 10), gate=6.0)[0, :, 7:9, 7] != 0).any()
+
+
+def test_an_odd_grid_maps_onto_its_rounded_up_plane():
+    present, previous = _frames(x=9, y=7)
+    previous[0, 0:2, 0:2, 1] = CAR
+    present[0, 2:4, 0:2, 1] = CAR  # 2 grid cells = 1 plane cell along x
+    field = agent_velocity_field(present, previous, (5, 4))
+    assert field.shape == (1, 2, 5, 4)
+    assert torch.allclose(field[0, :, 1, 0], torch.tensor([1.0, 0.0]))
+
+
+def test_frames_of_different_shapes_are_refused():
+    present, previous = _frames()
+    with pytest.raises(ValueError, match="previous .* and present .* differ"):
+        agent_velocity_field(present, previous[..., :3], (10, 10))

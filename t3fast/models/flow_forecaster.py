@@ -42,6 +42,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from t3fast.models.agent_velocity import VELOCITY_CHANNELS
 from t3fast.models.blocks import group_norm
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
@@ -117,11 +118,12 @@ class FlowTriplaneForecaster(nn.Module):
         match_radius: the matching costs compare each cell with the cells up to this many
             cells away in the previous frame (the fastest agents move ~7 cells a step).
         bev: the latent has only the xy plane.
-        tracker_prior: start from the tracker's motion: the agents' velocities measured between
-            the last two observed frames (:func:`~t3fast.models.agent_velocity.agent_velocity_field`,
+        tracker_prior: start from the tracker's motion: the agents' velocities measured in the
+            last three observed frames (:func:`~t3fast.models.agent_velocity.tracker_velocities`,
             ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
-            ``(k + 1) * velocity`` plus the learned correction. Untrained, such a forecaster is
-            the tracker in the latent; training has to improve on it, not rediscover it.
+            ``(k + 1)`` times the last step's velocity plus the learned correction. Untrained,
+            such a forecaster is the tracker in the latent; training has to improve on it, not
+            rediscover it.
     """
 
     def __init__(
@@ -142,10 +144,12 @@ class FlowTriplaneForecaster(nn.Module):
         self.channels, self.history, self.steps, self.flow_scale, self.bev = channels, history, steps, flow_scale, bev
         self.match_radius, self.match_pairs = match_radius, min(2, history - 1)
         self.tracker_prior = tracker_prior
+        if tracker_prior and history < 3:
+            raise ValueError(f"FlowTriplaneForecaster(tracker_prior=True) reads 3 history frames, got {history}")
         costs = self.match_pairs * (2 * match_radius + 1) ** 2
         self.match_stem = nn.Sequential(nn.Conv2d(costs, MATCH_FEATURES, 1), nn.SiLU())  # compress before the 3x3 convs
-        self.unet = FlowUNet((2 * history - 1) * channels + MATCH_FEATURES + 2 * tracker_prior, steps * (2 + channels),
-                             widths)
+        inputs = (2 * history - 1) * channels + MATCH_FEATURES + VELOCITY_CHANNELS * tracker_prior
+        self.unet = FlowUNet(inputs, steps * (2 + channels), widths)
         head = self.unet.head
         with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
             head.weight.zero_()
@@ -158,17 +162,17 @@ class FlowTriplaneForecaster(nn.Module):
 
     def predict(self, past: Triplane, velocity: Tensor | None = None) -> tuple[list[Triplane], Tensor, Tensor]:
         """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) and, with
-        ``tracker_prior``, the agents' velocities ``[B, 2, H, W]`` (plane cells per step) -> (the
+        ``tracker_prior``, the agents' velocities ``[B, 4, H, W]`` (plane cells per step) -> (the
         ``steps`` future triplanes, forward displacements ``[B, steps, 2, H, W]`` of the present
         cells in plane cells, Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
         xy = past.xy[:, -self.history :]
         b, t, c, h, w = xy.shape
         if t < self.history:
             raise ValueError(f"FlowTriplaneForecaster: {self.history} history frames needed, got {t}")
-        if self.tracker_prior and (velocity is None or velocity.shape != (b, 2, h, w)):
+        if self.tracker_prior and (velocity is None or velocity.shape != (b, VELOCITY_CHANNELS, h, w)):
             got = None if velocity is None else list(velocity.shape)
             raise ValueError(f"FlowTriplaneForecaster(tracker_prior=True) needs the agents' velocities "
-                             f"[{b}, 2, {h}, {w}] (T3Former.agent_velocity), got {got}")
+                             f"[{b}, {VELOCITY_CHANNELS}, {h}, {w}] (T3Former.agent_velocity), got {got}")
         costs = torch.cat([matching_costs(xy[:, -1 - p], xy[:, -2 - p], self.match_radius)
                            for p in range(self.match_pairs)], dim=1)
         inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)]
@@ -178,7 +182,7 @@ class FlowTriplaneForecaster(nn.Module):
         k = torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype).view(1, -1, 1, 1, 1)
         displacements = out[:, :, :2] * self.flow_scale * k
         if self.tracker_prior:
-            displacements = displacements + velocity.to(out.dtype).unsqueeze(1) * k
+            displacements = displacements + velocity[:, :2].to(out.dtype).unsqueeze(1) * k
         deltas = out[:, :, 2:]
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual

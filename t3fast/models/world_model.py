@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
 from t3fast.errors import UsageError
-from t3fast.models.agent_velocity import agent_velocity_field
+from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -245,14 +245,14 @@ class T3Former(nn.Module):
     @torch.no_grad()
     def agent_velocity(self, occupancy: Tensor, poses: Tensor) -> Tensor | None:
         """The agents' velocities a forecaster with a tracker prior starts from
-        (:func:`~t3fast.models.agent_velocity.agent_velocity_field`, ``[B, 2, H, W]`` plane cells
-        per step), measured between the last two past frames ``occupancy[:, -2:]`` (labels
+        (:func:`~t3fast.models.agent_velocity.tracker_velocities`, ``[B, 4, H, W]`` plane cells
+        per step), measured in the last three past frames ``occupancy[:, -3:]`` (labels
         ``[B, T, X, Y, Z]``) moved into the present frame with ``poses`` ``[B, T, 3]``; None for a
         forecaster without one."""
         if not getattr(self.forecaster, "tracker_prior", False):
             return None
-        previous = warp_sequence(occupancy[:, -2:-1], poses[:, -2:-1])[:, 0]
-        return agent_velocity_field(occupancy[:, -1], previous, self.encoder.config.plane_shape[:2])
+        frames = torch.cat([warp_sequence(occupancy[:, -3:-1], poses[:, -3:-1]), occupancy[:, -1:]], dim=1)
+        return tracker_velocities(frames, self.encoder.config.plane_shape[:2])
 
     @torch.no_grad()
     def decode_frames(self, futures: list[Triplane], poses: Tensor) -> Tensor:

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
-from t3fast.models.agent_velocity import agent_velocity_field
+from t3fast.models.agent_velocity import agent_velocity_field, tracker_velocities
 
 
 def _frames(x: int = 20, y: int = 20, z: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -37,9 +37,9 @@ def test_an_unmatched_or_standing_agent_has_no_velocity():
     previous[0, 14:18, 4:6, 1] = PEDESTRIAN  # another class does not match
     assert (agent_velocity_field(present, previous, (10, 10)) == 0).all()
     far = previous.clone()
-    far[0, 2:6, 14:16, 1] = CAR  # 12 grid cells = 4.8 m away: beyond the 4 m gate
-    assert (agent_velocity_field(present, far, (10, 10))[0, :, 7:9, 7] == 0).all()
-    assert (agent_velocity_field(present, far, (10, 10), gate=6.0)[0, :, 7:9, 7] != 0).any()
+    far[0, 2:6, 14:16, 1] = CAR  # 12 grid cells = 4.8 m away: within the default 8 m gate, beyond 4 m
+    assert (agent_velocity_field(present, far, (10, 10), gate=4.0)[0, :, 7:9, 7] == 0).all()
+    assert torch.allclose(agent_velocity_field(present, far, (10, 10))[0, :, 7:9, 7], torch.tensor([[6.0], [0.0]]))
 
 
 def test_an_odd_grid_maps_onto_its_rounded_up_plane():
@@ -55,3 +55,14 @@ def test_frames_of_different_shapes_are_refused():
     present, previous = _frames()
     with pytest.raises(ValueError, match="previous .* and present .* differ"):
         agent_velocity_field(present, previous[..., :3], (10, 10))
+
+
+def test_tracker_velocities_are_the_last_step_and_the_mean_of_the_last_two():
+    frames = torch.full((1, 3, 20, 20, 4), FREE, dtype=torch.uint8)
+    for t, x in enumerate([0, 2, 8]):  # 2 then 6 grid cells a step: braking would read the other way round
+        frames[0, t, x : x + 4, 8:10, 1] = CAR
+    v = tracker_velocities(frames, (10, 10))
+    assert v.shape == (1, 4, 10, 10)
+    assert torch.allclose(v[0, :, 4, 4], torch.tensor([3.0, 0.0, 2.0, 0.0]))  # plane cells per step
+    with pytest.raises(ValueError, match=r"frames must be \[B, 3, X, Y, Z\], got \[1, 2, 20, 20, 4\]"):
+        tracker_velocities(frames[:, 1:], (10, 10))

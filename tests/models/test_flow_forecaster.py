@@ -250,19 +250,21 @@ def test_world_model_builds_the_forecaster_its_config_names():
 def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velocities():
     torch.manual_seed(0)
     f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True)
-    assert f.unet.down[0][0].in_channels == 9 * 4 + 32 + 2  # the velocities are an input too
+    assert f.unet.down[0][0].in_channels == 9 * 4 + 32 + 4  # both velocity fields are inputs too
     past = _past()
-    velocity = torch.zeros(2, 2, 20, 16)
-    velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0]).view(2, 1, 1)
+    velocity = torch.zeros(2, 4, 20, 16)
+    velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)  # accelerating
     _, displacements, _ = f.predict(past, velocity)
-    for k in range(3):  # step k: k + 1 velocities, plus a correction that starts near zero
-        assert torch.allclose(displacements[:, k], (k + 1) * velocity, atol=0.1)
+    for k in range(3):  # step k: k + 1 last-step velocities, plus a correction that starts near zero
+        assert torch.allclose(displacements[:, k], (k + 1) * velocity[:, :2], atol=0.1)
     futures, _ = f(past, 2, velocity=velocity)
     assert len(futures) == 2
-    with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 2, 20, 16\].*got None"):
+    with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 4, 20, 16\].*got None"):
         f.predict(past)
-    with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 2, 20, 16\].*got \[2, 2, 16, 20\]"):
-        f.predict(past, velocity.transpose(-2, -1))
+    with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 4, 20, 16\].*got \[2, 2, 20, 16\]"):
+        f.predict(past, velocity[:, :2])
+    with pytest.raises(ValueError, match="reads 3 history frames, got 2"):
+        FlowTriplaneForecaster(history=2, tracker_prior=True)
 
 
 def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_frames():
@@ -276,13 +278,14 @@ def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_fram
                              planner_heads=2, ego_aligned=True, tracker_prior=True)
     model = T3Former.from_config(ae, world).eval()
     occ = torch.full((1, 5, 200, 200, 16), FREE, dtype=torch.uint8)
-    for t in range(5):  # a car driving 4 grid cells (1.6 m) per frame along x; the ego stands still
-        occ[0, t, 80 + 4 * t : 90 + 4 * t, 100:104, 0:3] = CAR
+    for t in range(5):  # a car speeding up along x by 2 grid cells a frame each frame; the ego stands still
+        occ[0, t, 60 + t * (t + 1) : 70 + t * (t + 1), 100:104, 0:3] = CAR
     still = torch.zeros(1, 4, 2)
     poses = torch.zeros(1, 5, 3)
     velocity = model.agent_velocity(occ, poses)
-    assert velocity.shape == (1, 2, 100, 100)
-    assert torch.allclose(velocity[0, :, 50, 51], torch.tensor([2.0, 0.0]))  # 2 plane cells per step
+    assert velocity.shape == (1, 4, 100, 100)
+    # last step 8 grid cells = 4 plane cells; the mean of the last two steps 7 grid cells
+    assert torch.allclose(velocity[0, :, 42, 51], torch.tensor([4.0, 0.0, 3.5, 0.0]))
     assert model.forecast(occ, still).labels.shape == (1, 6, 200, 200, 16)
     past = model.encode_history(occ, poses)
     with pytest.raises(ValueError, match="needs the agents' velocities"):

@@ -10,7 +10,7 @@ import torch
 
 from t3fast.data.classes import CAR, FREE, PEDESTRIAN
 from t3fast.data.sample import PRESENT, WINDOW
-from t3fast.models.agent_velocity import agent_velocity_field
+from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.triplane import Triplane
 from t3fast.training.world_model import latent_flips
 from t3fast.training.world_model.latent_cache import AlignedBatch
@@ -49,7 +49,7 @@ def _batch(h: int = 6, w: int = 6, z: int = 3, c: int = 2, bev: bool = False) ->
     boxes[1, : PRESENT + 1, 1] = 0.0
     planes = Triplane(torch.randn(2, WINDOW, c, h, w), None if bev else torch.randn(2, WINDOW, c, h, z),
                       None if bev else torch.randn(2, WINDOW, c, w, z))
-    return AlignedBatch(planes, boxes, valid, torch.randn(2, 4, 2), torch.randn(2, 6, 2), torch.randn(2, 2, h, w))
+    return AlignedBatch(planes, boxes, valid, torch.randn(2, 4, 2), torch.randn(2, 6, 2), torch.randn(2, 4, h, w))
 
 
 def _wrapped(angle: torch.Tensor) -> torch.Tensor:
@@ -136,24 +136,22 @@ def test_motion_targets_of_a_flipped_window_are_the_flipped_targets(flips):
 def test_velocities_of_a_flipped_window_are_the_flipped_velocities(flips):
     """The tracker prior measured on mirrored/transposed frames is the flipped prior."""
     flip_x, flip_y, transpose = flips
-    present = torch.full((1, 20, 20, 4), FREE, dtype=torch.uint8)
-    previous = present.clone()
-    previous[0, 3:7, 11:13, :2] = CAR  # a car moving +4 cells in x and -2 in y, off every symmetry axis
-    present[0, 7:11, 9:11, :2] = CAR
-    previous[0, 14:16, 2:4, 0] = PEDESTRIAN  # a standing pedestrian
-    present[0, 14:16, 2:4, 0] = PEDESTRIAN
-    velocity = agent_velocity_field(present, previous, (10, 10))
-    assert velocity.abs().sum() > 0
+    frames = torch.full((1, 3, 20, 20, 4), FREE, dtype=torch.uint8)
+    for t, (x, y) in enumerate([(1, 12), (3, 11), (7, 9)]):  # a car speeding up, off every symmetry axis
+        frames[0, t, x : x + 4, y : y + 2, :2] = CAR
+    frames[0, :, 14:16, 2:4, 0] = PEDESTRIAN  # a standing pedestrian
+    velocity = tracker_velocities(frames, (10, 10))
+    assert velocity[:, :2].abs().sum() > 0 and not torch.equal(velocity[:, :2], velocity[:, 2:])
     batch = _batch(h=10, w=10)
     batch = AlignedBatch(batch.planes, batch.boxes, batch.box_valid, batch.past_actions, batch.future_actions,
                          velocity.expand(2, -1, -1, -1))
     if flip_x:
-        present, previous = present.flip(-3), previous.flip(-3)
+        frames = frames.flip(-3)
     if flip_y:
-        present, previous = present.flip(-2), previous.flip(-2)
+        frames = frames.flip(-2)
     if transpose:
-        present, previous = present.transpose(-3, -2), previous.transpose(-3, -2)
-    expected = agent_velocity_field(present, previous, (10, 10))
+        frames = frames.transpose(-3, -2)
+    expected = tracker_velocities(frames, (10, 10))
     assert torch.allclose(flip_aligned(batch, flip_x, flip_y, transpose).velocity[:1], expected, atol=1e-6)
 
 

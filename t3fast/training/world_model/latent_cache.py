@@ -6,8 +6,8 @@ planes. Encoding them costs more than the forecaster's whole step on a CPU, so e
 encoded once, stored in float16 (one file per window, about 2.3 MB with the small
 autoencoder), and read by every later run and ablation. A window's file also holds what the
 motion targets are made from (the agents' boxes and the ego's displacements) and the agents'
-velocities measured between the last two past frames
-(:func:`~t3fast.models.agent_velocity.agent_velocity_field`, the tracker prior).
+velocities measured in the last three past frames
+(:func:`~t3fast.models.agent_velocity.tracker_velocities`, the tracker prior).
 
 The cache folder's name hashes the encoder's weights and the data of the split's first scene,
 so a new autoencoder or a changed world builds a new cache instead of reading stale planes;
@@ -31,13 +31,13 @@ from t3fast.data.classes import FREE, IGNORE
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
-from t3fast.models.agent_velocity import agent_velocity_field
+from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
 from t3fast.training.triplane_cache import encoder_digest
 from t3fast.training.world_model.windows import ego_aligned_window
 
-CACHE_FORMAT = 2  # 2: the agents' velocities are stored with each window
+CACHE_FORMAT = 3  # 2: the agents' velocities are stored with each window; 3: over one and two steps
 
 
 def world_digest(windows: SyntheticDriving) -> str:
@@ -55,7 +55,7 @@ class AlignedWindow:
     """One cached window: planes ``[11, C, H, W]`` (float32 once read) of its frames in the
     present ego frame; ``boxes`` ``[11, A, 7]`` and ``box_valid`` ``[11, A]`` in the present
     frame; ``past_actions`` ``[4, 2]``, ``future_actions`` ``[6, 2]``; the agents' ``velocity``
-    ``[2, H, W]`` (plane cells per step)."""
+    ``[4, H, W]`` (plane cells per step)."""
 
     planes: Triplane
     boxes: Tensor
@@ -101,9 +101,9 @@ class AlignedLatentCache(Dataset):
             sample = self.windows[index]
             occ, poses = sample.occ[None].to(device), sample.ego_poses[None].to(device)
             planes, moved = ego_aligned_window(self.model, occ, poses)
-            recent = moved[0, PRESENT - 1 : PRESENT + 1]
+            recent = moved[:, PRESENT - 2 : PRESENT + 1]
             recent = recent.masked_fill(recent == IGNORE, FREE)  # what a past frame did not see is free
-            velocity = agent_velocity_field(recent[1:], recent[:1], tuple(planes.xy.shape[-2:]))[0]
+            velocity = tracker_velocities(recent, tuple(planes.xy.shape[-2:]))[0]
             save_checkpoint(
                 {
                     "planes": tuple(None if p is None else p[0].half().cpu() for p in planes),
@@ -134,7 +134,7 @@ class AlignedLatentCache(Dataset):
 class AlignedBatch:
     """Cached windows collated: planes ``[B, 11, C, H, W]``, ``boxes`` ``[B, 11, A, 7]`` (A
     padded with invalid boxes), ``box_valid`` ``[B, 11, A]``, actions ``[B, 4, 2]``,
-    ``[B, 6, 2]``, ``velocity`` ``[B, 2, H, W]``."""
+    ``[B, 6, 2]``, ``velocity`` ``[B, 4, H, W]``."""
 
     planes: Triplane
     boxes: Tensor

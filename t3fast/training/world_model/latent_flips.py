@@ -31,19 +31,19 @@ def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: boo
     yaw = boxes[..., 6]
     if flip_x:
         xy, xz = xy.flip(-2), None if xz is None else xz.flip(-2)
-        velocity = velocity.flip(-2) * velocity.new_tensor([-1.0, 1.0]).view(1, 2, 1, 1)
+        velocity = velocity.flip(-2) * velocity.new_tensor([-1.0, 1.0]).repeat(velocity.shape[1] // 2).view(-1, 1, 1)
         boxes[..., 0], yaw = -boxes[..., 0], math.pi - yaw
         past[..., 0], future[..., 0] = -past[..., 0], -future[..., 0]
     if flip_y:
         xy, yz = xy.flip(-1), None if yz is None else yz.flip(-2)
-        velocity = velocity.flip(-1) * velocity.new_tensor([1.0, -1.0]).view(1, 2, 1, 1)
+        velocity = velocity.flip(-1) * velocity.new_tensor([1.0, -1.0]).repeat(velocity.shape[1] // 2).view(-1, 1, 1)
         boxes[..., 1], yaw = -boxes[..., 1], -yaw
         past[..., 1], future[..., 1] = -past[..., 1], -future[..., 1]
     if transpose:
         if xy.shape[-1] != xy.shape[-2]:
             raise ValueError(f"flip_aligned: x and y can only be swapped on a square plane, got {list(xy.shape[-2:])}")
         xy, xz, yz = xy.transpose(-2, -1), yz, xz
-        velocity = velocity.transpose(-2, -1)[:, [1, 0]]
+        velocity = velocity.transpose(-2, -1).unflatten(1, (-1, 2)).flip(2).flatten(1, 2)  # (x, y) pairs swap
         boxes[..., [0, 1]], yaw = boxes[..., [1, 0]], math.pi / 2 - yaw
         past, future = past[..., [1, 0]], future[..., [1, 0]]
     boxes[..., 6] = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi

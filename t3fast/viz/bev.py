@@ -166,6 +166,16 @@ def forecast_figure(
     return _grid([row_past, row_pred, row_true])
 
 
+def comparison_figure(present: np.ndarray, rows: list[tuple[str, np.ndarray]], steps: list[int],
+                      scale: int = 2) -> Image.Image:
+    """The present frame ``[X, Y, Z]`` above one row per method: ``rows`` of (name, future frames
+    ``[S, X, Y, Z]``), each drawn at the future ``steps`` (0-based, 0.5 s apart)."""
+    top = [_captioned(bev_image(present, scale=scale), "present")]
+    grid = [[_captioned(bev_image(frames[k], scale=scale), f"{name} +{0.5 * (k + 1):.1f} s") for k in steps]
+            for name, frames in rows]
+    return _grid([top, *grid])
+
+
 def forecast_animation(
     past: np.ndarray, predicted: np.ndarray, truth: np.ndarray, planned: np.ndarray, true_path: np.ndarray,
     scale: int = 2, name: str = "T3Former",

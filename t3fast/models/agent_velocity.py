@@ -43,7 +43,9 @@ def bev_components(mask: Tensor) -> tuple[Tensor, int]:
         if torch.equal(jumped, labels):
             break
         labels = jumped
-    _, inverse = torch.unique(labels.long(), return_inverse=True)  # 0 (off the mask) stays 0
+    values, inverse = torch.unique(labels.long(), return_inverse=True)
+    if values[0] != 0:  # no cell off the mask: the first component is 1 all the same
+        inverse = inverse + 1
     return inverse, int(inverse.max())
 
 

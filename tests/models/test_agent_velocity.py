@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
-from t3fast.models.agent_velocity import agent_velocity_field, tracker_velocities
+from t3fast.models.agent_velocity import agent_velocity_field, bev_components, tracker_velocities
 
 
 def _frames(x: int = 20, y: int = 20, z: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -66,3 +66,10 @@ def test_tracker_velocities_are_the_last_step_and_the_mean_of_the_last_two():
     assert torch.allclose(v[0, :, 4, 4], torch.tensor([3.0, 0.0, 2.0, 0.0]))  # plane cells per step
     with pytest.raises(ValueError, match=r"frames must be \[B, 3, X, Y, Z\], got \[1, 2, 20, 20, 4\]"):
         tracker_velocities(frames[:, 1:], (10, 10))
+
+
+def test_a_bev_covered_by_agents_everywhere_is_one_component():
+    labels, n = bev_components(torch.ones(5, 4, dtype=torch.bool))
+    assert n == 1 and torch.equal(labels, torch.ones(5, 4, dtype=torch.long))
+    present = torch.full((1, 6, 6, 2), CAR, dtype=torch.uint8)  # every column holds an agent
+    assert (agent_velocity_field(present, present.clone(), (3, 3)) == 0).all()

@@ -63,11 +63,15 @@ def test_inference_does_not_import_the_training_stack():
 
 
 # ---------------------------------------------------------------- checkpoints that do not fit their config
+# a shipped model of the papers' Delta forecaster, whose weight names and shapes the cases below spoil
+DELTA_WM = "wm-small-no-delta"
+
+
 def spoiled(tmp_path, spoil, name="wm.pt"):
-    """The shipped world model with ``spoil(state)`` applied, saved under ``tmp_path``."""
+    """The shipped Delta-forecaster world model with ``spoil(state)`` applied, saved under ``tmp_path``."""
     from t3fast.io.checkpoint import save_checkpoint
 
-    state = load_checkpoint(SHIPPED_DIR / "wm-small.pt")
+    state = load_checkpoint(SHIPPED_DIR / f"{DELTA_WM}.pt")
     spoil(state)
     save_checkpoint(state, tmp_path / name)
     return tmp_path / name
@@ -157,7 +161,7 @@ def test_weights_named_as_in_earlier_versions_still_load(tmp_path):
             residual = state["model"].pop(f"forecaster.fuse_residual.{plane}")
             state["model"][f"forecaster.fuse_weight.{plane}"] = residual + torch.eye(residual.shape[0])
 
-    model, shipped = t3fast.load_world_model(spoiled(tmp_path, old_names)), t3fast.load_world_model("wm-small")
+    model, shipped = t3fast.load_world_model(spoiled(tmp_path, old_names)), t3fast.load_world_model(DELTA_WM)
     for (k, a), b in zip(model.state_dict().items(), shipped.state_dict().values()):
         torch.testing.assert_close(a, b, msg=k)
 

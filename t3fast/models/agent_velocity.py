@@ -85,6 +85,38 @@ def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], ga
     return velocity
 
 
+def _velocity_fields(present: Tensor, previous: list[Tensor], gates: list[float], plane_shape: tuple[int, int],
+                     classes: tuple[int, ...]) -> Tensor:
+    """:func:`agent_velocity_field` of ``present`` against each frame of ``previous`` (with its
+    gate), ``[B, 2 * len(previous), H, W]``; the present frame's agents are found once."""
+    b, nx, ny, _ = present.shape
+    h, w = plane_shape
+    fx, fy = -(-nx // h), -(-ny // w)  # grid columns per plane cell (an odd grid's last cell has fewer)
+    for frame in previous:
+        if frame.shape != present.shape:
+            raise ValueError(f"agent_velocity_field: previous {list(frame.shape)} and present "
+                             f"{list(present.shape)} differ in shape")
+    wanted = torch.tensor(classes, dtype=present.dtype, device=present.device)
+    pairs = len(previous)
+    # per grid column: the velocity (2 per previous frame) and whether it holds an agent
+    columns = present.new_zeros(b, 2 * pairs + 1, nx, ny, dtype=torch.float32)
+    for n in range(b):
+        now = frame_agents(present[n], wanted)
+        ids = now["ids"]
+        on = ids > 0
+        columns[n, -1] = on.float()
+        for p, (frame, gate) in enumerate(zip(previous, gates)):
+            velocity = agent_velocities(now, frame_agents(frame[n], wanted), gate / VOXEL_SIZE).float()
+            columns[n, 2 * p : 2 * p + 2, on] = velocity[ids[on] - 1].T
+    pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
+    count, agent = pooled[:, -1:], pooled[:, -1:] > 0
+    field = pooled[:, :-1] / count.clamp(min=1e-6)  # 0 where no agent column
+    ring = F.avg_pool2d(torch.cat([field, agent.float()], 1), 3, stride=1, padding=1, count_include_pad=False)
+    grown = ring[:, :-1] / ring[:, -1:].clamp(min=1e-6)  # 0 where no agent is near
+    field = torch.where(agent, field, grown)
+    return field / torch.tensor([fx, fy] * pairs, device=field.device, dtype=field.dtype).view(1, -1, 1, 1)
+
+
 def agent_velocity_field(
     present: Tensor, previous: Tensor, plane_shape: tuple[int, int], gate: float = TRACK_GATE,
     classes: tuple[int, ...] = AGENT_CLASSES,
@@ -103,29 +135,7 @@ def agent_velocity_field(
         around an agent takes the mean of its agent neighbours (the latent of an agent spreads
         a little beyond its voxels); 0 elsewhere.
     """
-    b, nx, ny, _ = present.shape
-    h, w = plane_shape
-    fx, fy = -(-nx // h), -(-ny // w)  # grid columns per plane cell (an odd grid's last cell has fewer)
-    if previous.shape != present.shape:
-        raise ValueError(f"agent_velocity_field: previous {list(previous.shape)} and present "
-                         f"{list(present.shape)} differ in shape")
-    wanted = torch.tensor(classes, dtype=present.dtype, device=present.device)
-    columns = present.new_zeros(b, 3, nx, ny, dtype=torch.float32)  # velocity (2) and agent count
-    for n in range(b):
-        now, before = frame_agents(present[n], wanted), frame_agents(previous[n], wanted)
-        velocity = agent_velocities(now, before, gate / VOXEL_SIZE).float()
-        ids = now["ids"]
-        on = ids > 0
-        columns[n, :2, on] = velocity[ids[on] - 1].T
-        columns[n, 2] = on.float()
-    pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
-    count = pooled[:, 2:]
-    field = pooled[:, :2] / count.clamp(min=1e-6) * count.gt(0)
-    ring = F.avg_pool2d(torch.cat([field * count.gt(0), count.gt(0).float()], 1), 3, stride=1, padding=1,
-                        count_include_pad=False)
-    grown = ring[:, :2] / ring[:, 2:].clamp(min=1e-6) * ring[:, 2:].gt(0)
-    field = torch.where(count.gt(0), field, grown)
-    return field / torch.tensor([fx, fy], device=field.device, dtype=field.dtype).view(1, 2, 1, 1)
+    return _velocity_fields(present, [previous], [gate], plane_shape, classes)
 
 
 def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float = TRACK_GATE) -> Tensor:
@@ -136,7 +146,6 @@ def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float
     it shows acceleration), each as :func:`agent_velocity_field`."""
     if frames.dim() != 5 or frames.shape[1] != 3:
         raise ValueError(f"tracker_velocities: frames must be [B, 3, X, Y, Z], got {list(frames.shape)}")
-    present = frames[:, 2]
-    last = agent_velocity_field(present, frames[:, 1], plane_shape, gate)
-    two = agent_velocity_field(present, frames[:, 0], plane_shape, 2 * gate) / 2
-    return torch.cat([last, two], dim=1)
+    fields = _velocity_fields(frames[:, 2], [frames[:, 1], frames[:, 0]], [gate, 2 * gate], plane_shape,
+                              AGENT_CLASSES)
+    return fields * fields.new_tensor([1.0, 1.0, 0.5, 0.5]).view(1, 4, 1, 1)

@@ -141,9 +141,9 @@ def _spoiled(tmp_path, spoil, name="wm.pt"):
     return tmp_path / name
 
 
-HEAD = "forecaster.unet.head.weight"  # the flow forecaster's 1x1 head: 6 steps x (2 + 8 channels) outputs
-WRONG_SHAPE = (lambda s: s["model"].__setitem__(HEAD, torch.zeros(60, 32, 1, 1)),
-               f"weight '{HEAD}' has shape [60, 32, 1, 1] but the config 'task.model' builds [60, 16, 1, 1]")
+HEAD = "forecaster.unet.head.weight"  # the flow forecaster's 1x1 Delta head: 6 steps x 8 channels outputs
+WRONG_SHAPE = (lambda s: s["model"].__setitem__(HEAD, torch.zeros(48, 32, 1, 1)),
+               f"weight '{HEAD}' has shape [48, 32, 1, 1] but the config 'task.model' builds [48, 16, 1, 1]")
 NO_AUTOENCODER = (lambda s: s["config"]["task"].pop("autoencoder"),
                   "its config has no 'task.autoencoder' (the sizes of the model to build)")
 BAD_HEADS = (lambda s: s["config"]["task"]["model"].update(planner_heads=7),

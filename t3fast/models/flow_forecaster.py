@@ -29,6 +29,15 @@ through the next step's input). The displacements start near zero and Delta at z
 untrained forecaster is the present frame, but the displacement head is not exactly zero, so
 the body receives gradients from the first step on.
 
+With the tracker prior (``tracker_prior``, the shipped design) the motion is not found from
+scratch: the classical tracker's agent velocities (measured in the last three observed frames)
+give step ``k`` the displacement ``(k + 1) v``, and a *motion head*, a per-cell MLP of those
+velocities, predicts a correction on the tracked agents' cells only, so the static world stays
+exactly still. It learns what the velocities say about the future (how a noisy last-step
+velocity and the two-step mean combine, how agents brake and pull away); a per-cell correction
+from the UNet instead fitted the training windows and lowered validation. The UNet then predicts
+Delta only.
+
 The xz and yz planes (height profiles pooled along y and x) are carried from the present: the
 true future xy plane with the present xz/yz keeps 98 % of what the true future triplane gains
 on the moving classes, for a third of the latent.
@@ -87,6 +96,7 @@ class FlowUNet(nn.Module):
 
 MOVING_CELLS = 0.5  # a displacement of at least this many cells counts as moving content
 MATCH_FEATURES = 32  # channels the matching costs are compressed to before the UNet
+MOTION_HIDDEN = 64  # width of the motion head's per-cell MLP
 
 
 def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
@@ -121,9 +131,10 @@ class FlowTriplaneForecaster(nn.Module):
         tracker_prior: start from the tracker's motion: the agents' velocities measured in the
             last three observed frames (:func:`~t3fast.models.agent_velocity.tracker_velocities`,
             ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
-            ``(k + 1)`` times the last step's velocity plus the learned correction. Untrained,
-            such a forecaster is the tracker in the latent; training has to improve on it, not
-            rediscover it.
+            ``(k + 1)`` times the last step's velocity plus a correction that the *motion head*
+            (a per-cell MLP of the velocities, zero where no agent was measured) predicts; the
+            UNet then predicts Delta only. Untrained, such a forecaster is the tracker in the
+            latent; training has to improve on it, not rediscover it.
     """
 
     def __init__(
@@ -149,12 +160,24 @@ class FlowTriplaneForecaster(nn.Module):
         costs = self.match_pairs * (2 * match_radius + 1) ** 2
         self.match_stem = nn.Sequential(nn.Conv2d(costs, MATCH_FEATURES, 1), nn.SiLU())  # compress before the 3x3 convs
         inputs = (2 * history - 1) * channels + MATCH_FEATURES + VELOCITY_CHANNELS * tracker_prior
-        self.unet = FlowUNet(inputs, steps * (2 + channels), widths)
+        # with the tracker prior the motion head moves the agents (a per-cell correction from the
+        # UNet fitted the training windows and lowered validation), and the UNet predicts Delta
+        self.flow_outputs = 0 if tracker_prior else 2
+        self.unet = FlowUNet(inputs, steps * (self.flow_outputs + channels), widths)
         head = self.unet.head
         with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
             head.weight.zero_()
             head.bias.zero_()
-            head.weight.view(steps, 2 + channels, -1)[:, :2].normal_(std=1e-3)
+            head.weight.view(steps, self.flow_outputs + channels, -1)[:, : self.flow_outputs].normal_(std=1e-3)
+        if tracker_prior:
+            self.motion_head = nn.Sequential(
+                nn.Conv2d(VELOCITY_CHANNELS, MOTION_HIDDEN, 1), nn.SiLU(),
+                nn.Conv2d(MOTION_HIDDEN, MOTION_HIDDEN, 1), nn.SiLU(),
+                nn.Conv2d(MOTION_HIDDEN, steps * 2, 1),
+            )
+            with torch.no_grad():  # the correction starts at 0: the untrained forecaster is the tracker
+                self.motion_head[-1].weight.zero_()
+                self.motion_head[-1].bias.zero_()
         # the 1x1 fusion is the identity plus a learned part that starts at 0 (as in the Delta forecaster)
         self.fuse_residual = nn.Parameter(torch.zeros(channels, channels))
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
@@ -177,13 +200,17 @@ class FlowTriplaneForecaster(nn.Module):
                            for p in range(self.match_pairs)], dim=1)
         inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)]
         if self.tracker_prior:
-            inputs.append(velocity.to(xy.dtype) / self.flow_scale)
-        out = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, 2 + c, h, w)
+            velocity = velocity.to(xy.dtype)
+            inputs.append(velocity / self.flow_scale)
+        out = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, self.flow_outputs + c, h, w)
         k = torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype).view(1, -1, 1, 1, 1)
-        displacements = out[:, :, :2] * self.flow_scale * k
         if self.tracker_prior:
-            displacements = displacements + velocity[:, :2].to(out.dtype).unsqueeze(1) * k
-        deltas = out[:, :, 2:]
+            measured = (velocity != 0).any(1, keepdim=True).unsqueeze(1)  # [B, 1, 1, H, W]: cells of tracked agents
+            correction = self.motion_head(velocity / self.flow_scale).view(b, self.steps, 2, h, w) * measured
+            displacements = (velocity[:, :2].unsqueeze(1) + correction * self.flow_scale) * k
+        else:
+            displacements = out[:, :, :2] * self.flow_scale * k
+        deltas = out[:, :, self.flow_outputs :]
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
         futures = []

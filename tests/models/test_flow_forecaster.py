@@ -255,8 +255,9 @@ def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velo
     velocity = torch.zeros(2, 4, 20, 16)
     velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)  # accelerating
     _, displacements, _ = f.predict(past, velocity)
-    for k in range(3):  # step k: k + 1 last-step velocities, plus a correction that starts near zero
-        assert torch.allclose(displacements[:, k], (k + 1) * velocity[:, :2], atol=0.1)
+    for k in range(3):  # step k: k + 1 last-step velocities; the motion head's correction starts at zero
+        assert torch.equal(displacements[:, k], (k + 1) * velocity[:, :2])
+    assert f.unet.head.out_channels == 3 * 4  # the UNet predicts Delta only
     futures, _ = f(past, 2, velocity=velocity)
     assert len(futures) == 2
     with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 4, 20, 16\].*got None"):
@@ -265,6 +266,24 @@ def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velo
         f.predict(past, velocity[:, :2])
     with pytest.raises(ValueError, match="reads 3 history frames, got 2"):
         FlowTriplaneForecaster(history=2, tracker_prior=True)
+
+
+def test_motion_head_corrects_the_tracked_agents_only():
+    torch.manual_seed(0)
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True)
+    torch.nn.init.normal_(f.motion_head[-1].bias)  # a trained head: a correction wherever it is asked
+    velocity = torch.zeros(2, 4, 20, 16)
+    velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)
+    velocity[1, 2:, 10, 10] = 0.5  # matched two steps back only: still a tracked agent
+    _, displacements, _ = f.predict(_past(), velocity)
+    tracked = (velocity != 0).any(1)
+    assert (displacements.abs().sum(2)[:, :, ~tracked[0] & ~tracked[1]] == 0).all()  # the static world stays
+    prior = torch.stack([(k + 1) * velocity[:, :2] for k in range(3)], 1)
+    assert (displacements - prior).abs().sum(2)[0, :, 6, 5].min() > 0
+    assert (displacements - prior).abs().sum(2)[1, :, 10, 10].min() > 0
+    loss = displacements.square().sum()
+    loss.backward()
+    assert f.motion_head[-1].weight.grad.abs().sum() > 0  # the zero-initialised head learns from step 1
 
 
 def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_frames():

@@ -116,8 +116,10 @@ def t3former_method(
         if gt_ego:
             poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
             labels = model.render(out["futures"], poses, out["present"], present)
+        elif keep_static:  # the full decoding when a row already made it, else only the voxels that can change
+            labels = model.render(out["futures"], out["poses"], out["present"], present, out.get("decoded"))
         else:
-            labels = model.render(out["futures"], out["poses"], out["present"], present, shared.decoded(batch))
+            labels = shared.decoded(batch)
         return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])
 
     return run

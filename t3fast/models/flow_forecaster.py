@@ -95,6 +95,7 @@ class FlowUNet(nn.Module):
 
 
 MOVING_CELLS = 0.5  # a displacement of at least this many cells counts as moving content
+STILL = 1e-3  # a cell whose moving share and landed content are below this keeps its content as is
 MATCH_FEATURES = 32  # channels the matching costs are compressed to before the UNet
 MOTION_HIDDEN = 64  # width of the motion head's per-cell MLP
 
@@ -111,7 +112,11 @@ def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
     moved = warp_plane(present, landed[:, :2] / cover.clamp(min=1))
     # the share of a cell that stays put covers it too: only moving content leaves a hole
     vacated = (moving - cover).clamp(min=0)
-    return moved + vacated * (fill.view(1, -1, 1, 1) - moved)
+    out = moved + vacated * (fill.view(1, -1, 1, 1) - moved)
+    # where nothing leaves or lands the cell keeps its content exactly (a zero-flow lookup rounds),
+    # so a decoder can tell the unchanged cells apart and skip them
+    untouched = (moving <= STILL) & (cover <= STILL)
+    return torch.where(untouched, present, out)
 
 
 class FlowTriplaneForecaster(nn.Module):

@@ -421,8 +421,55 @@ class T3Former(nn.Module):
         when already at hand) and, given the present frame's labels ``present``
         ``[B, X, Y, Z]`` (ego-aligned, ``static_from_present``), the observed present edited by
         the forecast (:func:`observed_static`; ``present_planes``: the present triplane)."""
+        keep_present = present is not None and self.ego_aligned and self.static_from_present
+        if keep_present and decoded is None:
+            return self._render_changes(futures, poses, present_planes, present)
         labels = self.decode_frames(futures, poses) if decoded is None else decoded
-        if present is not None and self.ego_aligned and self.static_from_present:
+        if keep_present:
             moved = present_in_frames(present, poses)
             labels = observed_static(labels, self.reference_frames(present_planes, labels, moved, poses), moved)
+        return labels
+
+    def _render_changes(self, futures: list[Triplane], poses: Tensor, present_planes: Triplane,
+                        present: Tensor) -> Tensor:
+        """:meth:`render` with the observed present, decoding only the voxels whose labels can
+        differ from the present's. Where a future triplane's refined planes (what the decode op
+        looks up) equal the present one's at every cell a voxel's lookup reads (the xy cells
+        around its column; xz and yz whole), the forecast decodes to exactly what the present
+        triplane does, so :func:`observed_static`
+        keeps the observed label there. Only the voxels near changed xy cells and those beyond
+        the present grid are decoded; a forecaster that moves a few agents and carries xz/yz (the
+        flow forecaster) decodes a few percent of each frame. Same labels as decoding all."""
+        moved = present_in_frames(present, poses)
+        labels = moved.clone()
+        b, s = moved.shape[:2]
+        grid = self.decoder.grid
+        h, w = present_planes.xy.shape[-2:]
+        now = self.decoder.features(present_planes)  # what the lookups read: the refined planes
+        for k, future in enumerate(futures):
+            refined = self.decoder.features(future)
+            if not (torch.equal(refined.xz, now.xz) and torch.equal(refined.yz, now.yz)):
+                changed = torch.ones(b, h, w, dtype=torch.bool, device=moved.device)  # xz/yz changed: every voxel
+            else:  # a lookup reads the 2 x 2 cells around its point: the nearest one's 3 x 3 neighbourhood covers them
+                diff = (refined.xy != now.xy).any(1, keepdim=True).float()
+                changed = nn.functional.max_pool2d(diff, 3, stride=1, padding=1)[:, 0] > 0
+            points = frame_queries(poses[:, k].float(), grid)  # [B, N, 3], normalised
+            i = ((points[..., 0] + 1) * h / 2 - 0.5).round().long().clamp(0, h - 1)
+            j = ((points[..., 1] + 1) * w / 2 - 0.5).round().long().clamp(0, w - 1)
+            observed = moved[:, k].reshape(b, -1)
+            need = changed.flatten(1).gather(1, i * w + j) | (observed == IGNORE)
+            for n in range(b):
+                index = need[n].nonzero().squeeze(1)
+                if not index.numel():
+                    continue
+                query = points[n : n + 1, index]
+                decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), query).view(-1)
+                # the present triplane at the same voxels, where an agent is involved (as reference_frames)
+                reference = decoded.clone()
+                agents = torch.isin(decoded, _AGENTS.to(decoded.device)) | torch.isin(observed[n, index],
+                                                                                      _AGENTS.to(decoded.device))
+                if bool(agents.any()):
+                    planes = present_planes.map(lambda p, n=n: p[n : n + 1])
+                    reference[agents] = self.decoder.predict(planes, query[:, agents]).view(-1)
+                labels[n, k].view(-1)[index] = observed_static(decoded, reference, observed[n, index])
         return labels

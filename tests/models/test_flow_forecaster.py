@@ -134,7 +134,19 @@ def test_moving_nothing_leaves_the_plane_as_it_is():
     torch.manual_seed(0)
     present = torch.randn(2, 3, 9, 8)
     out = move_plane(present, torch.zeros(2, 2, 9, 8), torch.full((3,), 5.0))
-    assert torch.allclose(out, present, atol=1e-4)
+    assert torch.equal(out, present)  # exactly: a decoder may skip the cells that did not change
+
+
+def test_cells_nothing_leaves_or_lands_on_keep_their_content_exactly():
+    torch.manual_seed(0)
+    present = torch.randn(1, 3, 12, 12)
+    disp = torch.zeros(1, 2, 12, 12)
+    disp[0, 0, 3:5, 4:6] = 1.7
+    out = move_plane(present, disp, torch.zeros(3))
+    touched = torch.zeros(12, 12, dtype=torch.bool)
+    touched[3:7, 4:7] = True  # the block, and the cells its content lands on (bilinear: one more row and column)
+    assert torch.equal(out[0][:, ~touched], present[0][:, ~touched])
+    assert not torch.allclose(out[0][:, 3:7, 4:6], present[0][:, 3:7, 4:6])
 
 
 def test_a_moved_block_appears_at_its_new_place_and_leaves_the_fill():
@@ -313,3 +325,38 @@ def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_fram
     assert len(out.triplanes) == 6
     world.tracker_prior = False
     assert T3Former.from_config(ae, world).agent_velocity(occ, poses) is None
+
+
+def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
+    """The world model's render decodes only the voxels near cells the forecast changed (and
+    those beyond the present grid); the labels equal decoding every voxel, for a flow forecast
+    that moves a few agents, and for one that changes every plane."""
+    from t3fast.data.classes import AGENT_CLASSES, CAR, FREE, MANMADE
+    from t3fast.models.config import AutoencoderConfig, WorldModelConfig
+    from t3fast.models.world_model import T3Former
+
+    torch.manual_seed(0)
+    ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
+                           half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
+    world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
+                             planner_heads=2, ego_aligned=True, tracker_prior=True)
+    model = T3Former.from_config(ae, world).eval()
+    occ = torch.randint(0, 17, (1, 5, 200, 200, 16), dtype=torch.uint8)
+    occ[torch.isin(occ, torch.tensor(AGENT_CLASSES, dtype=torch.uint8))] = MANMADE  # a static world
+    occ[:, :, 50:150, 50:150] = FREE
+    for t in range(5):  # two cars driving, the ego moving forward 2 m a frame
+        occ[0, t, 60 + 3 * t : 70 + 3 * t, 100:104, 0:3] = CAR
+        occ[0, t, 120:124, 70 + 2 * t : 80 + 2 * t, 0:3] = CAR
+    poses = torch.stack([torch.tensor([2.0 * (t - 4), 0.0, 0.0]) for t in range(5)])[None]
+    past = model.encode_history(occ, poses)
+    velocity = model.agent_velocity(occ, poses)
+    futures, _ = model.forecaster(past, 6, velocity=velocity)
+    present = past.map(lambda p: p[:, -1])
+    frames = torch.stack([torch.tensor([2.0 * (k + 1), 0.3 * k, 0.02 * k]) for k in range(6)])[None]
+    moved_cells = (futures[5].xy != present.xy).any(1).float().mean()
+    assert 0 < moved_cells < 0.2
+    full = model.render(futures, frames, present, occ[:, -1], model.decode_frames(futures, frames))
+    assert torch.equal(model.render(futures, frames, present, occ[:, -1]), full)
+    changed = [f.map(lambda p: p + 0.1) for f in futures]  # every plane changes: every voxel is decoded
+    full = model.render(changed, frames, present, occ[:, -1], model.decode_frames(changed, frames))
+    assert torch.equal(model.render(changed, frames, present, occ[:, -1]), full)

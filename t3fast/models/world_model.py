@@ -274,16 +274,25 @@ class T3Former(nn.Module):
         only voxels where :func:`observed_static` can take a forecast label that differs from
         the observed one. Elsewhere ``decoded`` itself (no change), so only ~2 % of the voxels
         are decoded twice."""
-        agents = _AGENTS.to(decoded.device)
-        need = torch.isin(decoded, agents) | torch.isin(moved, agents)
-        reference = decoded.clone()
+        reference = torch.empty_like(decoded)
         for b in range(decoded.shape[0]):
             planes = present_planes.map(lambda p, b=b: p[b : b + 1])
             for k in range(decoded.shape[1]):
-                index = need[b, k].flatten().nonzero().squeeze(1)
-                if index.numel():
-                    points = frame_queries(poses[b : b + 1, k].float(), self.decoder.grid)[:, index]
-                    reference[b, k].view(-1)[index] = self.decoder.predict(planes, points).view(-1)
+                points = frame_queries(poses[b : b + 1, k].float(), self.decoder.grid)
+                reference[b, k] = self._present_where_agents(planes, points, decoded[b, k].flatten(),
+                                                             moved[b, k].flatten()).view(decoded.shape[2:])
+        return reference
+
+    def _present_where_agents(self, planes: Triplane, points: Tensor, decoded: Tensor, observed: Tensor) -> Tensor:
+        """The reference of :func:`observed_static` for one frame's voxels: their forecast labels
+        ``decoded`` ``[N]``, except where those or the observed labels ``observed`` ``[N]`` show an
+        agent, where the present triplane ``planes`` (batch 1) is decoded at ``points``
+        ``[1, N, 3]`` instead."""
+        agents = _AGENTS.to(decoded.device)
+        need = torch.isin(decoded, agents) | torch.isin(observed, agents)
+        reference = decoded.clone()
+        if bool(need.any()):
+            reference[need] = self.decoder.predict(planes, points[:, need]).view(-1)
         return reference
 
     def _forecaster(self, past: Triplane, steps: int, first_step: int = 0,
@@ -436,13 +445,13 @@ class T3Former(nn.Module):
         differ from the present's. Where a future triplane's refined planes (what the decode op
         looks up) equal the present one's at every cell a voxel's lookup reads (the xy cells
         around its column; xz and yz whole), the forecast decodes to exactly what the present
-        triplane does, so :func:`observed_static`
-        keeps the observed label there. Only the voxels near changed xy cells and those beyond
-        the present grid are decoded; a forecaster that moves a few agents and carries xz/yz (the
-        flow forecaster) decodes a few percent of each frame. Same labels as decoding all."""
+        triplane does, so :func:`observed_static` keeps the observed label there. Only the voxels
+        near changed xy cells and those beyond the present grid are decoded; a forecaster that
+        moves a few agents and carries xz/yz (the flow forecaster) decodes a few percent of each
+        frame. Same labels as decoding all."""
         moved = present_in_frames(present, poses)
         labels = moved.clone()
-        b, s = moved.shape[:2]
+        b = moved.shape[0]
         grid = self.decoder.grid
         h, w = present_planes.xy.shape[-2:]
         now = self.decoder.features(present_planes)  # what the lookups read: the refined planes
@@ -464,12 +473,7 @@ class T3Former(nn.Module):
                     continue
                 query = points[n : n + 1, index]
                 decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), query).view(-1)
-                # the present triplane at the same voxels, where an agent is involved (as reference_frames)
-                reference = decoded.clone()
-                agents = torch.isin(decoded, _AGENTS.to(decoded.device)) | torch.isin(observed[n, index],
-                                                                                      _AGENTS.to(decoded.device))
-                if bool(agents.any()):
-                    planes = present_planes.map(lambda p, n=n: p[n : n + 1])
-                    reference[agents] = self.decoder.predict(planes, query[:, agents]).view(-1)
+                reference = self._present_where_agents(present_planes.map(lambda p, n=n: p[n : n + 1]), query,
+                                                       decoded, observed[n, index])
                 labels[n, k].view(-1)[index] = observed_static(decoded, reference, observed[n, index])
         return labels

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from t3fast.data.classes import AGENT_CLASSES, FREE, VOXEL_SIZE
-from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents
+from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents, move_agents
 from t3fast.models.ego_motion import extrapolate_poses, planar_poses, unwarp_sequence, warp_sequence
 
 
@@ -59,28 +59,17 @@ def track_agents(past_occ: Tensor, past_poses: Tensor, future_poses: Tensor, gat
     Returns:
         ``[B, S, X, Y, Z]``, same dtype as ``past_occ``.
     """
-    b, _, nx, ny, nz = past_occ.shape
     steps = future_poses.shape[1]
     previous = warp_sequence(past_occ[:, -2:-1], past_poses[:, -2:-1])[:, 0]
     wanted = torch.tensor(classes, dtype=past_occ.dtype, device=past_occ.device)
     k = torch.arange(1, steps + 1, dtype=torch.float64, device=past_occ.device)
     scenes = []
-    for n in range(b):
+    for n in range(past_occ.shape[0]):
         present = past_occ[n, -1]
         now, before = frame_agents(present, wanted), frame_agents(previous[n], wanted)
         velocity = agent_velocities(now, before, gate / VOXEL_SIZE)
         shift = torch.round(k[:, None, None] * velocity[None]).long()  # [S, n, 2] cells
-        base = present.masked_fill(now["mask"], FREE)
-        frames = base.expand(steps, nx, ny, nz).clone()
-        if now["ijz"].shape[0]:
-            ijz = now["ijz"]
-            moved = ijz[None, :, :2] + shift[:, now["component"]]  # [S, V, 2]
-            inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
-            step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
-            z = ijz[None, :, 2].expand_as(inside)
-            frames[step[inside], moved[..., 0][inside], moved[..., 1][inside], z[inside]] = (
-                now["label"].to(frames.dtype).expand(steps, -1)[inside])
-        scenes.append(frames)
+        scenes.append(move_agents(present, now, shift, FREE))
     return unwarp_sequence(torch.stack(scenes), future_poses)
 
 

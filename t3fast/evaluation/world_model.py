@@ -84,10 +84,10 @@ class SharedRollout:
             poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
             past = model.encode_history(batch.past_occ, poses)
             velocity = model.agent_velocity(batch.past_occ, poses)
-            futures, _, planned = model.rollout(past, actions, NUM_FUTURE, velocity=velocity)
+            futures, _, planned, motion = model.rollout(past, actions, NUM_FUTURE, velocity=velocity)
             present = past.map(lambda p: p[:, -1])
             frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
-            self._out = dict(futures=futures, actions=planned, poses=frame_poses, present=present,
+            self._out = dict(futures=futures, motion=motion, actions=planned, poses=frame_poses, present=present,
                              reconstruction=model.decoder.predict(present))
             self._batch = batch
         return self._out
@@ -115,9 +115,10 @@ def t3former_method(
         present = batch.past_occ[:, -1] if keep_static else None
         if gt_ego:
             poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
-            labels = model.render(out["futures"], poses, out["present"], present)
+            labels = model.render(out["futures"], poses, out["present"], present, motion=out["motion"])
         elif keep_static:  # the full decoding when a row already made it, else only the voxels that can change
-            labels = model.render(out["futures"], out["poses"], out["present"], present, out.get("decoded"))
+            labels = model.render(out["futures"], out["poses"], out["present"], present, out.get("decoded"),
+                                  out["motion"])
         else:
             labels = shared.decoded(batch)
         return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])

@@ -85,6 +85,43 @@ def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], ga
     return velocity
 
 
+def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: int) -> Tensor:
+    """``frame`` ``[X, Y, Z]`` with its agents (:func:`frame_agents`) moved: per step ``s`` and
+    component ``c`` by ``shift[s, c]`` ``[S, n, 2]`` whole grid cells. The agents' voxels of the
+    frame become ``free`` and each component's voxels (whole columns, heights kept) are pasted
+    at their shifted place; what leaves the grid is dropped. Returns ``[S, X, Y, Z]``."""
+    nx, ny, nz = frame.shape
+    steps = shift.shape[0]
+    frames = frame.masked_fill(agents["mask"], free).expand(steps, nx, ny, nz).clone()
+    ijz = agents["ijz"]
+    if ijz.shape[0]:
+        moved = ijz[None, :, :2] + shift[:, agents["component"]]  # [S, V, 2]
+        inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
+        step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
+        z = ijz[None, :, 2].expand_as(inside)
+        frames[step[inside], moved[..., 0][inside], moved[..., 1][inside], z[inside]] = (
+            agents["label"].to(frames.dtype).expand(steps, -1)[inside])
+    return frames
+
+
+def component_shifts(agents: dict[str, Tensor], displacement: Tensor) -> Tensor:
+    """Per step and agent component of :func:`frame_agents`, the mean of a per-plane-cell
+    forward ``displacement`` ``[S, 2, H, W]`` (plane cells) over the component's grid columns,
+    in grid cells: ``[S, n, 2]`` float. A component moves as a whole (a car does not stretch)."""
+    ids = agents["ids"]
+    nx, ny = ids.shape
+    h, w = displacement.shape[-2:]
+    fx, fy = -(-nx // h), -(-ny // w)
+    cols = (ids > 0).nonzero()
+    n = agents["cls"].shape[0]
+    component = ids[cols[:, 0], cols[:, 1]] - 1
+    per_column = displacement[:, :, cols[:, 0] // fx, cols[:, 1] // fy].double()  # [S, 2, N]
+    total = per_column.new_zeros(displacement.shape[0], 2, n).index_add_(2, component, per_column)
+    count = torch.bincount(component, minlength=n).clamp(min=1).double()
+    scale = total.new_tensor([fx, fy]).view(1, 2, 1)
+    return (total / count * scale).transpose(1, 2)
+
+
 def _velocity_fields(present: Tensor, previous: list[Tensor], gates: list[float], plane_shape: tuple[int, int],
                      classes: tuple[int, ...]) -> Tensor:
     """:func:`agent_velocity_field` of ``present`` against each frame of ``previous`` (with its

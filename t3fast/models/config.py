@@ -123,6 +123,9 @@ class WorldModelConfig:
     flow_scale: float = 2.0  # plane cells per unit of its displacement output, per step
     match_radius: int = 6  # its matching costs look this many plane cells around each cell
     tracker_prior: bool = False  # it corrects the tracker's agent velocities instead of finding motion alone
+    # draw the observed agents moved along the flow forecaster's displacements (label space)
+    # instead of decoding them from the forecast latent (see T3Former._render_agents)
+    render_agents: bool = False
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -173,7 +176,10 @@ class WorldModelConfig:
             raise ConfigError(f"'planner_heads' ({self.planner_heads}) must divide 'd_act' ({self.d_act})")
         check_int("planner_layers", self.planner_layers, 1, MAX_DEPTH)
         check_int("past_actions", self.past_actions, 1)
-        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior"):
+        if self.render_agents is True and self.forecaster != "flow":
+            raise ConfigError("'render_agents' draws agents along the flow forecaster's displacements: it needs "
+                              f"forecaster='flow', got {self.forecaster!r}")
+        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

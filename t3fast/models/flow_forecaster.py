@@ -226,16 +226,19 @@ class FlowTriplaneForecaster(nn.Module):
         return futures, displacements, deltas
 
     def forward(
-        self, past: Triplane, steps: int | None = None, first_step: int = 0, velocity: Tensor | None = None
-    ) -> tuple[list[Triplane], list[Triplane]]:
+        self, past: Triplane, steps: int | None = None, first_step: int = 0, velocity: Tensor | None = None,
+        motion: bool = False,
+    ) -> tuple[list[Triplane], list[Triplane]] | tuple[list[Triplane], list[Triplane], Tensor]:
         """The forecaster interface of :class:`T3Former`: (the first ``steps`` future
-        triplanes, their changes from the present). All steps come from the observed history,
-        so rollouts start at the present (``first_step`` 0). ``velocity``: see :meth:`predict`."""
+        triplanes, their changes from the present) and, with ``motion``, their forward
+        displacements ``[B, steps, 2, H, W]``. All steps come from the observed history, so
+        rollouts start at the present (``first_step`` 0). ``velocity``: see :meth:`predict`."""
         steps = self.steps if steps is None else steps
         if first_step != 0 or not 1 <= steps <= self.steps:
             raise ValueError(f"FlowTriplaneForecaster predicts future steps 0..{self.steps - 1} from the observed "
                              f"history at once; asked for {steps} steps from step {first_step}")
-        futures = self.predict(past, velocity)[0][:steps]
+        futures, displacements, _ = self.predict(past, velocity)
+        futures = futures[:steps]
         present = past.map(lambda p: p[:, -1])
         changes = [Triplane(*(None if f is None else f - p for f, p in zip(fut, present))) for fut in futures]
-        return futures, changes
+        return (futures, changes, displacements[:, :steps]) if motion else (futures, changes)

@@ -73,3 +73,44 @@ def test_a_bev_covered_by_agents_everywhere_is_one_component():
     assert n == 1 and torch.equal(labels, torch.ones(5, 4, dtype=torch.long))
     present = torch.full((1, 6, 6, 2), CAR, dtype=torch.uint8)  # every column holds an agent
     assert (agent_velocity_field(present, present.clone(), (3, 3)) == 0).all()
+
+
+def test_move_agents_pastes_each_component_at_its_shift_and_frees_where_it_was():
+    from t3fast.data.classes import AGENT_CLASSES
+    from t3fast.models.agent_velocity import frame_agents, move_agents
+
+    frame, _ = _frames()
+    frame = frame[0]
+    frame[2:6, 2:4, 1:3] = CAR
+    frame[12:14, 12:14, 1] = PEDESTRIAN
+    agents = frame_agents(frame, torch.tensor(AGENT_CLASSES, dtype=torch.uint8))
+    order = agents["ids"][3, 3] - 1, agents["ids"][12, 12] - 1  # car, pedestrian components
+    shift = torch.zeros(2, 2, 2, dtype=torch.long)
+    shift[1, order[0]] = torch.tensor([3, 1])  # step 1: the car moves, the pedestrian stays
+    shift[1, order[1]] = torch.tensor([0, 10])  # and the pedestrian leaves the grid
+    moved = move_agents(frame, agents, shift, FREE)
+    assert moved.shape == (2, 20, 20, 4)
+    assert torch.equal(moved[0], frame)  # no shift: the frame as it was
+    expected = frame.clone()
+    expected[torch.isin(frame, torch.tensor([CAR, PEDESTRIAN], dtype=torch.uint8))] = FREE
+    expected[5:9, 3:5, 1:3] = CAR  # heights kept, ground under it untouched
+    assert torch.equal(moved[1], expected)
+
+
+def test_component_shifts_average_the_displacement_over_each_agent_in_grid_cells():
+    from t3fast.data.classes import AGENT_CLASSES
+    from t3fast.models.agent_velocity import component_shifts, frame_agents
+
+    frame, _ = _frames()
+    frame = frame[0]
+    frame[2:6, 2:4, 1] = CAR  # plane cells (1..2, 1) at 2 grid cells per plane cell
+    agents = frame_agents(frame, torch.tensor(AGENT_CLASSES, dtype=torch.uint8))
+    displacement = torch.zeros(3, 2, 10, 10)
+    displacement[1, :, 1, 1] = torch.tensor([1.0, -0.5])
+    displacement[1, :, 2, 1] = torch.tensor([2.0, -0.5])  # the car's two plane cells disagree: their mean
+    shifts = component_shifts(agents, displacement)
+    assert shifts.shape == (3, 1, 2)
+    assert torch.allclose(shifts[1, 0], torch.tensor([3.0, -1.0], dtype=torch.float64))
+    assert (shifts[[0, 2]] == 0).all()
+    empty = frame_agents(frame.masked_fill(frame == CAR, FREE), torch.tensor(AGENT_CLASSES, dtype=torch.uint8))
+    assert component_shifts(empty, displacement).shape == (3, 0, 2)

@@ -255,7 +255,7 @@ def test_world_model_builds_the_forecaster_its_config_names():
     assert model.forecaster.match_radius == world.match_radius == 6
     futures, displacements, deltas = model(past, torch.zeros(1, 4, 2), motion=True)
     assert len(futures) == 6 and displacements.shape == (1, 6, 2, 100, 100) and deltas.shape == (1, 6, 4, 100, 100)
-    futures, _, actions = model.rollout(past, torch.zeros(1, 4, 2), 6)
+    futures, _, actions, _ = model.rollout(past, torch.zeros(1, 4, 2), 6)
     assert len(futures) == 6 and actions.shape == (1, 6, 2)
 
 
@@ -360,3 +360,67 @@ def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
     changed = [f.map(lambda p: p + 0.1) for f in futures]  # every plane changes: every voxel is decoded
     full = model.render(changed, frames, present, occ[:, -1], model.decode_frames(changed, frames))
     assert torch.equal(model.render(changed, frames, present, occ[:, -1]), full)
+
+
+def _render_agents_model(render_agents: bool = True):
+    from t3fast.models.config import AutoencoderConfig, WorldModelConfig
+    from t3fast.models.world_model import T3Former
+
+    ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
+                           half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
+    world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
+                             planner_heads=2, ego_aligned=True, tracker_prior=True, render_agents=render_agents)
+    return T3Former.from_config(ae, world).eval()
+
+
+def test_untrained_agent_render_moves_the_agents_as_the_tracker_does():
+    """With an untrained motion head the forecaster's displacements are the tracker's velocities,
+    and the label-space render draws the present agents exactly where the tracker baseline puts
+    them; a trained head's correction moves them elsewhere."""
+    from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
+    from t3fast.evaluation.baselines import track_agents
+
+    torch.manual_seed(0)
+    model = _render_agents_model()
+    occ = torch.full((1, 5, 200, 200, 16), FREE, dtype=torch.uint8)
+    occ[..., 0] = DRIVEABLE_SURFACE
+    for t in range(5):  # a car at 6 grid cells a frame, a pedestrian at 1, a parked car
+        occ[0, t, 40 + 6 * t : 50 + 6 * t, 100:104, 1:3] = CAR
+        occ[0, t, 150, 60 + t : 62 + t, 1:4] = PEDESTRIAN
+        occ[0, t, 150:160, 150:154, 1:3] = CAR
+    poses = torch.zeros(1, 5, 3)  # the ego stands still: every future voxel was seen
+    still = torch.zeros(1, 6, 3)
+    labels = model.forecast(occ, torch.zeros(1, 4, 2), future_actions=still).labels
+    expected = track_agents(occ, poses, still)
+    assert torch.equal(labels, expected)
+    assert (labels[0, 5, 100:110, 100:104, 1] == CAR).all()  # 6 steps of 6 cells on from 64
+    with torch.no_grad():
+        model.forecaster.motion_head[-1].bias.fill_(0.5)  # a trained head's correction
+    moved = model.forecast(occ, torch.zeros(1, 4, 2), future_actions=still).labels
+    assert not torch.equal(moved, expected)
+
+
+def test_agent_render_fills_what_the_present_never_saw_from_the_forecast():
+    from t3fast.data.classes import FLAT_GROUND_CLASSES, FREE, IGNORE
+
+    torch.manual_seed(0)
+    model = _render_agents_model()
+    occ = torch.randint(0, 17, (1, 5, 200, 200, 16), dtype=torch.uint8)
+    poses = torch.stack([torch.tensor([4.0 * (t - 4), 0.0, 0.0]) for t in range(5)])[None]
+    ahead = torch.stack([torch.tensor([4.0 * (k + 1), 0.0, 0.0]) for k in range(6)])[None]  # 24 m on
+    out = model.forecast(occ, poses[:, 1:, :2] - poses[:, :-1, :2], future_actions=ahead)
+    labels = out.labels
+    assert not (labels == IGNORE).any()
+    beyond = labels[0, 5, -30:]  # the last 12 m of the last frame lie beyond the present grid
+    allowed = torch.tensor(list(FLAT_GROUND_CLASSES) + [FREE], dtype=labels.dtype)
+    assert torch.isin(beyond, allowed).all()
+
+
+def test_agent_render_needs_the_flow_forecaster():
+    from t3fast.errors import ConfigError
+    from t3fast.models.config import WorldModelConfig
+
+    with pytest.raises(ConfigError, match="'render_agents' .* needs forecaster='flow', got 'delta'"):
+        WorldModelConfig(forecaster="delta", render_agents=True)
+    with pytest.raises(ConfigError, match="'render_agents' must be true or false, got 1"):
+        WorldModelConfig(forecaster="flow", render_agents=1)

@@ -43,7 +43,7 @@ def test_encoder_stays_frozen_in_training_mode():
     assert not model.encoder.training
     assert not any(p.requires_grad for p in model.encoder.parameters())
     past = torch.stack([random_labels(1, (16, 12, 4), seed=s) for s in range(5)], dim=1)
-    futures, _, actions = model.rollout(model.encode_sequence(past), torch.randn(1, 4, 2), steps=2)
+    futures, _, actions, _ = model.rollout(model.encode_sequence(past), torch.randn(1, 4, 2), steps=2)
     loss = actions.square().sum() + sum(p.square().sum() for p in futures[-1])
     loss.backward()
     assert all(p.grad is None for p in model.encoder.parameters())

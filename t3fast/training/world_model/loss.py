@@ -33,7 +33,7 @@ def rollout_loss(
         core = model.module if hasattr(model, "module") else model
         history = planes.map(lambda p: p[:, : PRESENT + 1])
         with torch.no_grad():
-            frames, _, planned = core.rollout(history, past_actions, first)
+            frames, _, planned, _ = core.rollout(history, past_actions, first)
         for frame in frames:
             history = history.append(frame)
         actions = torch.cat([past_actions, planned], dim=1)

@@ -123,6 +123,8 @@ class WorldModelConfig:
     flow_scale: float = 2.0  # plane cells per unit of its displacement output, per step
     match_radius: int = 6  # its matching costs look this many plane cells around each cell
     tracker_prior: bool = False  # it corrects the tracker's agent velocities instead of finding motion alone
+    # its motion head reads the scene around each agent, not only the velocities (t3fast.models.motion_head)
+    motion_context: bool = False
     # draw the observed agents moved along the flow forecaster's displacements (label space)
     # instead of decoding them from the forecast latent (see T3Former._render_agents)
     render_agents: bool = False
@@ -179,7 +181,11 @@ class WorldModelConfig:
         if self.render_agents is True and self.forecaster != "flow":
             raise ConfigError("'render_agents' draws agents along the flow forecaster's displacements: it needs "
                               f"forecaster='flow', got {self.forecaster!r}")
-        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents"):
+        if self.motion_context is True and not self.tracker_prior:
+            raise ConfigError("'motion_context' gives the tracker prior's motion head the scene: it needs "
+                              "tracker_prior=true")
+        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents",
+                    "motion_context"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

@@ -53,6 +53,7 @@ from torch.nn import functional as F
 
 from t3fast.models.agent_velocity import VELOCITY_CHANNELS
 from t3fast.models.blocks import group_norm
+from t3fast.models.motion_head import ContextMotionHead, cell_motion_head
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
 from t3fast.ops import delta_fuse
@@ -97,7 +98,6 @@ class FlowUNet(nn.Module):
 MOVING_CELLS = 0.5  # a displacement of at least this many cells counts as moving content
 STILL = 1e-3  # a cell whose moving share and landed content are below this keeps its content as is
 MATCH_FEATURES = 32  # channels the matching costs are compressed to before the UNet
-MOTION_HIDDEN = 64  # width of the motion head's per-cell MLP
 
 
 def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
@@ -153,6 +153,7 @@ class FlowTriplaneForecaster(nn.Module):
         match_radius: int = 6,
         bev: bool = False,
         tracker_prior: bool = False,
+        motion_context: bool = False,
     ):
         super().__init__()
         if history < 2:
@@ -174,15 +175,11 @@ class FlowTriplaneForecaster(nn.Module):
             head.weight.zero_()
             head.bias.zero_()
             head.weight.view(steps, self.flow_outputs + channels, -1)[:, : self.flow_outputs].normal_(std=1e-3)
-        if tracker_prior:
-            self.motion_head = nn.Sequential(
-                nn.Conv2d(VELOCITY_CHANNELS, MOTION_HIDDEN, 1), nn.SiLU(),
-                nn.Conv2d(MOTION_HIDDEN, MOTION_HIDDEN, 1), nn.SiLU(),
-                nn.Conv2d(MOTION_HIDDEN, steps * 2, 1),
-            )
-            with torch.no_grad():  # the correction starts at 0: the untrained forecaster is the tracker
-                self.motion_head[-1].weight.zero_()
-                self.motion_head[-1].bias.zero_()
+        if motion_context and not tracker_prior:
+            raise ValueError("FlowTriplaneForecaster(motion_context=True) corrects the tracker: it needs tracker_prior")
+        self.motion_context = motion_context
+        if tracker_prior:  # the correction starts at 0: the untrained forecaster is the tracker
+            self.motion_head = ContextMotionHead(channels, steps) if motion_context else cell_motion_head(steps)
         # the 1x1 fusion is the identity plus a learned part that starts at 0 (as in the Delta forecaster)
         self.fuse_residual = nn.Parameter(torch.zeros(channels, channels))
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
@@ -211,7 +208,12 @@ class FlowTriplaneForecaster(nn.Module):
         k = torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype).view(1, -1, 1, 1, 1)
         if self.tracker_prior:
             measured = (velocity != 0).any(1, keepdim=True).unsqueeze(1)  # [B, 1, 1, H, W]: cells of tracked agents
-            correction = self.motion_head(velocity / self.flow_scale).view(b, self.steps, 2, h, w) * measured
+            scaled = velocity / self.flow_scale
+            if self.motion_context:
+                correction = self.motion_head(scaled, xy[:, -1], xy[:, -2], measured[:, 0].to(xy.dtype))
+            else:
+                correction = self.motion_head(scaled)
+            correction = correction.view(b, self.steps, 2, h, w) * measured
             displacements = (velocity[:, :2].unsqueeze(1) + correction * self.flow_scale) * k
         else:
             displacements = out[:, :, :2] * self.flow_scale * k

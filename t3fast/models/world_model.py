@@ -203,6 +203,7 @@ class T3Former(nn.Module):
             match_radius=world.match_radius,
             bev=bev,
             tracker_prior=world.tracker_prior,
+            motion_context=world.motion_context,
         ) if world.forecaster == "flow" else DeltaTriplaneForecaster(
             channels=autoencoder.channels,
             plane_shape=autoencoder.plane_shape,

@@ -424,3 +424,35 @@ def test_agent_render_needs_the_flow_forecaster():
         WorldModelConfig(forecaster="delta", render_agents=True)
     with pytest.raises(ConfigError, match="'render_agents' must be true or false, got 1"):
         WorldModelConfig(forecaster="flow", render_agents=1)
+
+
+def test_context_motion_head_starts_as_the_tracker_and_reads_the_scene():
+    torch.manual_seed(0)
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True,
+                               motion_context=True)
+    past = _past()
+    velocity = torch.zeros(2, 4, 20, 16)
+    velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)
+    _, displacements, _ = f.predict(past, velocity)
+    for k in range(3):  # untrained: the tracker's motion exactly
+        assert torch.equal(displacements[:, k], (k + 1) * velocity[:, :2])
+    displacements.square().sum().backward()
+    assert f.motion_head.head[-1].weight.grad.abs().sum() > 0  # learns from step 1
+    torch.nn.init.normal_(f.motion_head.head[-1].weight, std=0.1)
+    with torch.no_grad():
+        _, before, _ = f.predict(past, velocity)
+        far = past.map(lambda p: p.clone())
+        far.xy[:, -1, :, 15:, 10:] += 1.0  # the scene changes 8 cells away from the agent
+        _, after, _ = f.predict(far, velocity)
+    assert (before[0, :, :, 6, 5] - after[0, :, :, 6, 5]).abs().max() > 0  # the agent's motion reads it
+    assert (after[:, :, :, (velocity == 0).all(1)[0]] == 0).all()  # the untracked world stays still
+    with pytest.raises(ValueError, match="motion_context=True.* needs tracker_prior"):
+        FlowTriplaneForecaster(motion_context=True)
+
+
+def test_motion_context_config_needs_the_tracker_prior():
+    from t3fast.errors import ConfigError
+    from t3fast.models.config import WorldModelConfig
+
+    with pytest.raises(ConfigError, match="'motion_context' .* needs tracker_prior=true"):
+        WorldModelConfig(forecaster="flow", motion_context=True)

@@ -97,7 +97,7 @@ def _stage2_flow(name: str, **model) -> Stage2Config:
     # the flow term at full weight: at 0.1 the latent loss fell 30 % below the copy forecast's in
     # 250 steps while the flow error fell only from 4.0 to 3.3 cells and validation did not move
     cfg.loss = WorldLossConfig(flow_weight=1.0, static_flow_weight=0.2)
-    cfg.train = TrainConfig(steps=3000, batch_size=8, lr=1e-3, warmup_steps=100, log_every=25, eval_every=250,
+    cfg.train = TrainConfig(steps=1700, batch_size=8, lr=1e-3, warmup_steps=100, log_every=25, eval_every=250,
                             eval_at_start=True, ckpt_every=50, out_dir=f"runs/{name}")
     return cfg
 

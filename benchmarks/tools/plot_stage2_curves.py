@@ -1,8 +1,9 @@
 """Learning curves of a stage-2 run: ``python benchmarks/tools/plot_stage2_curves.py METRICS.jsonl OUT.png``.
 
-Left: the training terms (latent loss next to the copy forecast's, flow error on moving agents).
-Right: validation Avg mIoU every ``eval_every`` steps, along the planned and along the true ego
-poses, with the baselines scored once at step 0 on the same windows as flat lines.
+Left: the training terms (latent loss next to the copy forecast's, flow error on moving agents
+and, where logged, the drift of parked ones). Middle: validation Avg mIoU every ``eval_every``
+steps, along the planned and along the true ego poses, with the baselines scored once at step 0
+on the same windows as flat lines. Right: the same for the moving classes' mIoU.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ def main(metrics: Path, out: Path) -> None:
     records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
     train = [r for r in records if r["event"] == "train"]
     evals = [r for r in records if r["event"] == "eval"]
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (left, *panels) = plt.subplots(1, 3, figsize=(17, 4.5))
     steps = [r["step"] for r in train]
     left.plot(steps, [r["values"]["latent"] for r in train], label="latent loss")
     left.plot(steps, [r["values"]["copy_latent"] for r in train], label="latent loss of the copy forecast", ls="--")
@@ -33,21 +34,25 @@ def main(metrics: Path, out: Path) -> None:
     twin = left.twinx()
     twin.plot(steps, [r["values"]["flow_moving"] for r in train], color="tab:red", alpha=0.6,
               label="displacement error on moving agents")
+    if "flow_parked" in train[0]["values"]:
+        twin.plot(steps, [r["values"]["flow_parked"] for r in train], color="tab:orange", alpha=0.6,
+                  label="displacement of parked agents")
     twin.set_ylabel("plane cells")
     left.legend(loc="upper left", fontsize=8)
     twin.legend(loc="upper right", fontsize=8)
     left.set_title("training (batch means)")
     at = [r["step"] for r in evals]
-    right.plot(at, [r["values"]["gt_ego_miou_avg"] for r in evals], "o-", label="t3former, true poses")
-    right.plot(at, [r["values"]["miou_avg"] for r in evals], "o-", label="t3former, planned poses")
     first = evals[0]["values"]
-    for (key, name), colour in zip(BASELINES.items(), ("tab:green", "tab:red", "tab:purple", "tab:brown")):
-        if f"{key}_miou_avg" in first:
-            right.axhline(first[f"{key}_miou_avg"], ls="--", color=colour, label=name)
-    right.set_xlabel("step")
-    right.set_ylabel("Avg mIoU (val)")
-    right.legend(fontsize=8)
-    right.set_title("validation")
+    for panel, (suffix, what) in zip(panels, (("", "Avg mIoU"), ("_moving", "moving-class Avg mIoU"))):
+        panel.plot(at, [r["values"][f"gt_ego_miou{suffix}_avg"] for r in evals], "o-", label="t3former, true poses")
+        panel.plot(at, [r["values"][f"miou{suffix}_avg"] for r in evals], "o-", label="t3former, planned poses")
+        for (key, name), colour in zip(BASELINES.items(), ("tab:green", "tab:red", "tab:purple", "tab:brown")):
+            if f"{key}_miou{suffix}_avg" in first:
+                panel.axhline(first[f"{key}_miou{suffix}_avg"], ls="--", color=colour, label=name)
+        panel.set_xlabel("step")
+        panel.set_ylabel(f"{what} (val)")
+        panel.legend(fontsize=8)
+        panel.set_title(f"validation: {what}")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
 

@@ -1,0 +1,117 @@
+"""How much better agent motion is worth: the label-space tracker along the TRUE ego poses with
+the present's agents moved by different velocity estimates and by their true motion.
+
+``python benchmarks/tools/motion_ceilings.py [--split test --scenes 10 --stride 8 --windows 40]``
+
+Rows (Avg mIoU, moving-class Avg mIoU, IoU; classes absent from the windows skipped):
+
+* ``warp_gt_ego``: nothing moves; ``track_gt_ego``: the tracker (last-step centroid velocity);
+* ``chain_blend``: the last-step velocity averaged with the two-step mean along the matched
+  chain (present -> previous -> the one before), a classical alternative;
+* ``true_velocity``: each agent's box velocity over the last step, extrapolated (an oracle of
+  the present's motion); ``true_motion``: each agent's true future box motion (the ceiling).
+
+An agent (BEV component) takes the box whose present centre is nearest its centroid (within
+6 voxels) and seen until the horizon; the others keep the tracker's velocity.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from t3fast.data.classes import AGENT_CLASSES, FREE, GRID_LOWER, VOXEL_SIZE
+from t3fast.data.sample import NUM_FUTURE, PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.evaluation.world_model import MethodOutput, evaluate_many, track_gt_ego_method, warp_gt_ego_method
+from t3fast.models.agent_velocity import TRACK_GATE, frame_agents, move_agents
+from t3fast.models.ego_motion import planar_poses, unwarp_sequence, warp_sequence
+
+AGENTS = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+OWNER_CELLS = 6.0  # voxels between a component's centroid and its box centre to count as that agent
+
+
+def nearest(a: dict, b: dict) -> torch.Tensor:
+    """Per component of ``a``, the nearest component of ``b`` of its class within the gate, or -1."""
+    if a["cls"].shape[0] == 0 or b["cls"].shape[0] == 0:
+        return torch.full((a["cls"].shape[0],), -1, dtype=torch.long)
+    dist = (a["centroid"][:, None] - b["centroid"][None]).norm(dim=-1)
+    dist = dist.masked_fill(a["cls"][:, None] != b["cls"][None], float("inf"))
+    near, match = dist.min(1)
+    return torch.where(near <= TRACK_GATE / VOXEL_SIZE, match, torch.full_like(match, -1))
+
+
+def velocities(now: dict, before: dict, older: dict, blend: bool) -> torch.Tensor:
+    """Per present component, cells per step: the last step's centroid displacement and, with
+    ``blend``, its mean with the two-step displacement along the matched chain."""
+    v = torch.zeros(now["cls"].shape[0], 2, dtype=torch.float64)
+    m1 = nearest(now, before)
+    ok = m1 >= 0
+    v[ok] = now["centroid"][ok] - before["centroid"][m1[ok]]
+    if blend and ok.any():
+        m2 = nearest(before, older)
+        chained = ok.clone()
+        chained[ok] = m2[m1[ok]] >= 0
+        two = (now["centroid"][chained] - older["centroid"][m2[m1[chained]]]) / 2
+        v[chained] = (v[chained] + two) / 2
+    return v
+
+
+def box_shifts(now: dict, boxes: torch.Tensor, valid: torch.Tensor, mode: str) -> dict[int, torch.Tensor]:
+    """Component -> ``[S, 2]`` voxel shifts from its box: the true future motion or the last
+    step's velocity extrapolated."""
+    centres = (boxes[:, :, :2].double() - torch.tensor(GRID_LOWER[:2], dtype=torch.float64)) / VOXEL_SIZE - 0.5
+    if now["cls"].shape[0] == 0 or not valid[PRESENT].any():
+        return {}
+    dist = (now["centroid"][:, None] - centres[PRESENT][None]).norm(dim=-1)
+    dist[:, ~valid[PRESENT]] = float("inf")
+    near, owner = dist.min(1)
+    k = torch.arange(1, NUM_FUTURE + 1, dtype=torch.float64)[:, None]
+    out = {}
+    for c in range(now["cls"].shape[0]):
+        a = int(owner[c])
+        if near[c] <= OWNER_CELLS and bool(valid[PRESENT - 1 :, a].all()):
+            if mode == "true_motion":
+                out[c] = centres[PRESENT + 1 :, a] - centres[PRESENT, a]
+            else:
+                out[c] = k * (centres[PRESENT, a] - centres[PRESENT - 1, a])
+    return out
+
+
+def moved_agents(batch, mode: str) -> MethodOutput:
+    """The present's agents moved per ``mode``, then into the true future ego frames."""
+    poses = planar_poses(batch.ego_poses, PRESENT)
+    past = warp_sequence(batch.past_occ[:, -3:-1], poses[:, PRESENT - 2 : PRESENT])
+    k = torch.arange(1, NUM_FUTURE + 1, dtype=torch.float64)[:, None, None]
+    scenes = []
+    for n in range(batch.past_occ.shape[0]):
+        present = batch.past_occ[n, -1]
+        now, before, older = (frame_agents(f, AGENTS) for f in (present, past[n, 1], past[n, 0]))
+        shift = k * velocities(now, before, older, blend=mode == "chain_blend")[None]
+        if mode in ("true_velocity", "true_motion"):
+            for c, s in box_shifts(now, batch.boxes[n], batch.box_valid[n], mode).items():
+                shift[:, c] = s
+        scenes.append(move_agents(present, now, shift.round().long(), FREE))
+    return MethodOutput(labels=unwarp_sequence(torch.stack(scenes), poses[:, PRESENT + 1 :]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--split", default="test", choices=["train", "val", "test"])
+    parser.add_argument("--scenes", type=int, default=10)
+    parser.add_argument("--stride", type=int, default=8)
+    parser.add_argument("--windows", type=int, default=40)
+    args = parser.parse_args()
+    windows = SyntheticDriving(args.split, args.scenes, stride=args.stride)
+    methods = {"warp_gt_ego": warp_gt_ego_method, "track_gt_ego": track_gt_ego_method}
+    methods.update({m: (lambda b, m=m: moved_agents(b, m)) for m in ("chain_blend", "true_velocity", "true_motion")})
+    records = evaluate_many(methods, windows, list(range(min(len(windows), args.windows))), absent="skip")
+    print(f"{args.split}, {args.scenes} scenes, {min(len(windows), args.windows)} windows, true ego poses")
+    print("| agents moved by | Avg mIoU | moving-class mIoU | IoU |\n|---|---:|---:|---:|")
+    for name, r in records.items():
+        print(f"| {name} | {r['miou']['avg']:.2f} | {r['miou_moving']['avg']:.2f} | {r['iou']['avg']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

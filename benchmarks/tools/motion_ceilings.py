@@ -25,35 +25,24 @@ from t3fast.data.classes import AGENT_CLASSES, FREE, GRID_LOWER, VOXEL_SIZE
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import MethodOutput, evaluate_many, track_gt_ego_method, warp_gt_ego_method
-from t3fast.models.agent_velocity import TRACK_GATE, frame_agents, move_agents
+from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents, match_components, move_agents
 from t3fast.models.ego_motion import planar_poses, unwarp_sequence, warp_sequence
 
 AGENTS = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
 OWNER_CELLS = 6.0  # voxels between a component's centroid and its box centre to count as that agent
 
 
-def nearest(a: dict, b: dict) -> torch.Tensor:
-    """Per component of ``a``, the nearest component of ``b`` of its class within the gate, or -1."""
-    if a["cls"].shape[0] == 0 or b["cls"].shape[0] == 0:
-        return torch.full((a["cls"].shape[0],), -1, dtype=torch.long)
-    dist = (a["centroid"][:, None] - b["centroid"][None]).norm(dim=-1)
-    dist = dist.masked_fill(a["cls"][:, None] != b["cls"][None], float("inf"))
-    near, match = dist.min(1)
-    return torch.where(near <= TRACK_GATE / VOXEL_SIZE, match, torch.full_like(match, -1))
-
-
 def velocities(now: dict, before: dict, older: dict, blend: bool) -> torch.Tensor:
-    """Per present component, cells per step: the last step's centroid displacement and, with
-    ``blend``, its mean with the two-step displacement along the matched chain."""
-    v = torch.zeros(now["cls"].shape[0], 2, dtype=torch.float64)
-    m1 = nearest(now, before)
-    ok = m1 >= 0
-    v[ok] = now["centroid"][ok] - before["centroid"][m1[ok]]
-    if blend and ok.any():
-        m2 = nearest(before, older)
-        chained = ok.clone()
-        chained[ok] = m2[m1[ok]] >= 0
-        two = (now["centroid"][chained] - older["centroid"][m2[m1[chained]]]) / 2
+    """Per present component, cells per step: the tracker's last-step centroid displacement and,
+    with ``blend``, its mean with the two-step displacement along the matched chain."""
+    gate = TRACK_GATE / VOXEL_SIZE
+    v = agent_velocities(now, before, gate)
+    m1 = match_components(now, before, gate)
+    if blend and bool((m1 >= 0).any()):
+        # the component two frames back, along the chain now -> before -> older (-1: none)
+        back = torch.where(m1 >= 0, match_components(before, older, gate)[m1.clamp(min=0)], -1)
+        chained = back >= 0
+        two = (now["centroid"][chained] - older["centroid"][back[chained]]) / 2
         v[chained] = (v[chained] + two) / 2
     return v
 

@@ -69,19 +69,26 @@ def frame_agents(frame: Tensor, classes: Tensor) -> dict[str, Tensor]:
                 centroid=centroid / size.clamp(min=1)[:, None], mask=is_agent)
 
 
+def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
+    """Per present component (:func:`frame_agents`), the index of the nearest previous component
+    of its class whose centroid lies within ``gate_cells``, else -1: ``[n]`` int64."""
+    n = present["cls"].shape[0]
+    if n == 0 or previous["cls"].shape[0] == 0:
+        return torch.full((n,), -1, dtype=torch.long, device=present["cls"].device)
+    dist = (present["centroid"][:, None] - previous["centroid"][None]).norm(dim=-1)
+    dist = dist.masked_fill(present["cls"][:, None] != previous["cls"][None], math.inf)
+    nearest, match = dist.min(1)
+    return torch.where(nearest <= gate_cells, match, torch.full_like(match, -1))
+
+
 def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
     """Per present component, its velocity in cells per step ``[n, 2]``: the displacement of its
-    centroid from the nearest previous component of its class (both in the present frame);
-    0 without one within ``gate_cells``."""
-    n = present["cls"].shape[0]
-    velocity = torch.zeros(n, 2, dtype=torch.float64, device=present["cls"].device)
-    if n == 0 or previous["cls"].shape[0] == 0:
-        return velocity
-    diff = present["centroid"][:, None] - previous["centroid"][None]  # [n, m, 2]
-    dist = diff.norm(dim=-1).masked_fill(present["cls"][:, None] != previous["cls"][None], math.inf)
-    nearest, match = dist.min(1)
-    found = nearest <= gate_cells
-    velocity[found] = diff[found, match[found]]
+    centroid from the nearest previous component of its class (both in the present frame,
+    :func:`match_components`); 0 without one within ``gate_cells``."""
+    match = match_components(present, previous, gate_cells)
+    velocity = torch.zeros(match.shape[0], 2, dtype=torch.float64, device=match.device)
+    found = match >= 0
+    velocity[found] = present["centroid"][found] - previous["centroid"][match[found]]
     return velocity
 
 

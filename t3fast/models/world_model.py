@@ -465,7 +465,7 @@ class T3Former(nn.Module):
         mean of the forecast displacement ``motion`` ``[B, S, 2, H, W]`` over its columns, moved
         into the frame's pose; beyond the present grid, the forecast's decoded flat ground
         (:func:`beyond_present`). The forecaster's motion is drawn exactly: no decoding blurs a
-        car or loses a pedestrian (the latent render lost 1.7 moving-class mIoU to the tracker
+        car or loses a pedestrian (the latent render lost 1.1 moving-class mIoU to the tracker
         that moves the same agents this way). With the tracker prior and an untrained motion
         head, the agents move exactly as the tracker moves them."""
         agents = _AGENTS.to(present.device)

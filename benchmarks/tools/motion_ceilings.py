@@ -25,7 +25,7 @@ from t3fast.data.classes import AGENT_CLASSES, FREE, GRID_LOWER, VOXEL_SIZE
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import MethodOutput, evaluate_many, track_gt_ego_method, warp_gt_ego_method
-from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents, match_components, move_agents
+from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, chained_velocities, frame_agents, move_agents
 from t3fast.models.ego_motion import planar_poses, unwarp_sequence, warp_sequence
 
 AGENTS = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
@@ -37,14 +37,7 @@ def velocities(now: dict, before: dict, older: dict, blend: bool) -> torch.Tenso
     with ``blend``, its mean with the two-step displacement along the matched chain."""
     gate = TRACK_GATE / VOXEL_SIZE
     v = agent_velocities(now, before, gate)
-    m1 = match_components(now, before, gate)
-    if blend and bool((m1 >= 0).any()):
-        # the component two frames back, along the chain now -> before -> older (-1: none)
-        back = torch.where(m1 >= 0, match_components(before, older, gate)[m1.clamp(min=0)], -1)
-        chained = back >= 0
-        two = (now["centroid"][chained] - older["centroid"][back[chained]]) / 2
-        v[chained] = (v[chained] + two) / 2
-    return v
+    return (v + chained_velocities(now, before, older, gate)) / 2 if blend else v
 
 
 def box_shifts(now: dict, boxes: torch.Tensor, valid: torch.Tensor, mode: str) -> dict[int, torch.Tensor]:

@@ -30,9 +30,11 @@ untrained forecaster is the present frame, but the displacement head is not exac
 the body receives gradients from the first step on.
 
 With the tracker prior (``tracker_prior``, the shipped design) the motion is not found from
-scratch: the classical tracker's agent velocities (measured in the last three observed frames)
-give step ``k`` the displacement ``(k + 1) v``, and a *motion head*, a per-cell MLP of those
-velocities, predicts a correction on the tracked agents' cells only, so the static world stays
+scratch: the classical tracker's agent velocities (measured in the last three observed frames;
+``v`` the mean of the last step's and the chained two-step velocity, which moved agents better
+than the last step alone) give step ``k`` the displacement ``(k + 1) v``, and a *motion head*
+(a per-cell MLP of those velocities, or with ``motion_context`` one that also reads the scene
+around each agent) predicts a correction on the tracked agents' cells only, so the static world stays
 exactly still. It learns what the velocities say about the future (how a noisy last-step
 velocity and the two-step mean combine, how agents brake and pull away); a per-cell correction
 from the UNet instead fitted the training windows and lowered validation. The UNet then predicts
@@ -51,7 +53,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from t3fast.models.agent_velocity import VELOCITY_CHANNELS
+from t3fast.models.agent_velocity import VELOCITY_CHANNELS, blended_velocity
 from t3fast.models.blocks import group_norm
 from t3fast.models.motion_head import ContextMotionHead, cell_motion_head
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
@@ -136,9 +138,10 @@ class FlowTriplaneForecaster(nn.Module):
         tracker_prior: start from the tracker's motion: the agents' velocities measured in the
             last three observed frames (:func:`~t3fast.models.agent_velocity.tracker_velocities`,
             ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
-            ``(k + 1)`` times the last step's velocity plus a correction that the *motion head*
+            ``(k + 1)`` times their blend (:func:`~t3fast.models.agent_velocity.blended_velocity`)
+            plus a correction that the *motion head*
             (a per-cell MLP of the velocities, zero where no agent was measured) predicts; the
-            UNet then predicts Delta only. Untrained, such a forecaster is the tracker in the
+            UNet then predicts Delta only. Untrained, such a forecaster is this tracker in the
             latent; training has to improve on it, not rediscover it.
     """
 
@@ -214,7 +217,7 @@ class FlowTriplaneForecaster(nn.Module):
             else:
                 correction = self.motion_head(scaled)
             correction = correction.view(b, self.steps, 2, h, w) * measured
-            displacements = (velocity[:, :2].unsqueeze(1) + correction * self.flow_scale) * k
+            displacements = (blended_velocity(velocity).unsqueeze(1) + correction * self.flow_scale) * k
         else:
             displacements = out[:, :, :2] * self.flow_scale * k
         deltas = out[:, :, self.flow_outputs :]

@@ -68,6 +68,18 @@ def test_tracker_velocities_are_the_last_step_and_the_mean_of_the_last_two():
         tracker_velocities(frames[:, 1:], (10, 10))
 
 
+def test_two_step_velocity_follows_the_matched_chain_not_the_nearest_car_two_frames_back():
+    frames = torch.full((1, 3, 40, 20, 4), FREE, dtype=torch.uint8)
+    for t in range(3):  # a queue of two cars 11 cells apart, each at 5 cells a step
+        for start in (0, 11):
+            frames[0, t, start + 5 * t : start + 5 * t + 3, 8:10, 1] = CAR
+    v = tracker_velocities(frames, (20, 10))
+    # the rear car now (x 10..12) sits where the front car was two frames back: matched directly
+    # it would not have moved; along the chain it moved 10 cells in two steps
+    assert torch.allclose(v[0, :, 5, 4], torch.tensor([2.5, 0.0, 2.5, 0.0]))
+    assert torch.allclose(v[0, :, 11, 4], torch.tensor([2.5, 0.0, 2.5, 0.0]))
+
+
 def test_a_bev_covered_by_agents_everywhere_is_one_component():
     labels, n = bev_components(torch.ones(5, 4, dtype=torch.bool))
     assert n == 1 and torch.equal(labels, torch.ones(5, 4, dtype=torch.long))

@@ -267,8 +267,10 @@ def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velo
     velocity = torch.zeros(2, 4, 20, 16)
     velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)  # accelerating
     _, displacements, _ = f.predict(past, velocity)
-    for k in range(3):  # step k: k + 1 last-step velocities; the motion head's correction starts at zero
-        assert torch.equal(displacements[:, k], (k + 1) * velocity[:, :2])
+    blend = torch.zeros(2, 2, 20, 16)
+    blend[0, :, 5:8, 4:7] = torch.tensor([1.25, -1.0]).view(2, 1, 1)  # last step and two-step mean averaged
+    for k in range(3):  # step k: k + 1 blended velocities; the motion head's correction starts at zero
+        assert torch.equal(displacements[:, k], (k + 1) * blend)
     assert f.unet.head.out_channels == 3 * 4  # the UNet predicts Delta only
     futures, _ = f(past, 2, velocity=velocity)
     assert len(futures) == 2
@@ -374,9 +376,10 @@ def _render_agents_model(render_agents: bool = True):
 
 
 def test_untrained_agent_render_moves_the_agents_as_the_tracker_does():
-    """With an untrained motion head the forecaster's displacements are the tracker's velocities,
-    and the label-space render draws the present agents exactly where the tracker baseline puts
-    them; a trained head's correction moves them elsewhere."""
+    """With an untrained motion head the forecaster's displacements are the tracker's velocities
+    (here at constant speed, so the chain blend is the last step's velocity), and the label-space
+    render draws the present agents exactly where the tracker baseline puts them; a trained
+    head's correction moves them elsewhere."""
     from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
     from t3fast.evaluation.baselines import track_agents
 
@@ -434,8 +437,8 @@ def test_context_motion_head_starts_as_the_tracker_and_reads_the_scene():
     velocity = torch.zeros(2, 4, 20, 16)
     velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)
     _, displacements, _ = f.predict(past, velocity)
-    for k in range(3):  # untrained: the tracker's motion exactly
-        assert torch.equal(displacements[:, k], (k + 1) * velocity[:, :2])
+    for k in range(3):  # untrained: the tracker's blended motion exactly
+        assert torch.equal(displacements[:, k], (k + 1) * (velocity[:, :2] + velocity[:, 2:]) / 2)
     displacements.square().sum().backward()
     assert f.motion_head.head[-1].weight.grad.abs().sum() > 0  # learns from step 1
     torch.nn.init.normal_(f.motion_head.head[-1].weight, std=0.1)

@@ -73,3 +73,18 @@ def test_a_parked_agents_drift_is_an_error_and_its_ring_has_no_target():
     elsewhere = drift.clone()
     elsewhere[0, :, :, 10:20, 10:20] = 1.0
     assert _loss(elsewhere)[1]["flow_static"] > 0 and _loss(elsewhere)[0] > _loss(drift)[0]
+
+
+def test_the_flow_term_is_each_agents_mean_motion_as_the_render_moves_it():
+    """The render moves an agent by the mean displacement over its cells: a field right on
+    average but uneven scores zero, one off on average by 1 cell scores 1 per axis wrong."""
+    truth = torch.zeros(1, 6, 2, 100, 100)
+    for k in range(6):
+        truth[0, k, 0, 47:53, 48:52] = 2.0 * (k + 1)
+    uneven = truth.clone()
+    uneven[0, :, 0, 47:50, 48:52] += 1.0
+    uneven[0, :, 0, 50:53, 48:52] -= 1.0
+    assert _loss(uneven)[1]["flow_moving"] < 1e-4
+    off = truth.clone()
+    off[0, :, 1, 47:53, 48:52] += 1.0
+    assert abs(_loss(off)[1]["flow_moving"] - 1.0) < 1e-4

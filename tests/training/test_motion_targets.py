@@ -44,9 +44,10 @@ def test_cell_centres_are_symmetric_plane_cells():
 
 def test_a_car_moving_along_x_gives_its_present_cells_their_forward_motion():
     boxes, valid = _boxes(speed=1.6)  # two plane cells per frame
-    disp, moving, static, agents, covered = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, agents, covered, owner = agent_motion(boxes, valid, margin=MARGIN)
     assert disp.shape == (1, 6, 2, 100, 100)
     assert covered.shape == (1, 100, 100) and torch.equal(covered[0], PRESENT_CAR)
+    assert torch.equal(owner[0], torch.where(PRESENT_CAR, 0, -1))  # box 0 covers the car's cells
     assert moving.shape == static.shape == agents.shape == (1, 6, 100, 100)
     assert moving.dtype == static.dtype == agents.dtype == torch.bool
     for k in range(6):
@@ -75,7 +76,7 @@ def test_two_agents_and_a_batch_keep_their_own_motion():
     valid[0, :, :2] = True
     valid[1, :, 0] = True
     boxes[:, :, 2] = 7.0  # an invalid padding box: ignored whatever it holds
-    disp, moving, static, _, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, _, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     # agent 1: x in [-21.9, -18.9] -> rows 23..25 ; y in [14.5, 16.7] -> cols 68..70
     second = _rect(range(23, 26), range(68, 71))
     for k in range(6):
@@ -91,7 +92,7 @@ def test_a_turning_box_maps_its_points_rigidly():
     for k in range(6):  # it drives diagonally and turns 0.4 rad per frame
         boxes[0, PRESENT + 1 + k, 0, :2] = torch.tensor([0.4 + 0.5 * (k + 1), 0.4 - 0.3 * (k + 1)])
         boxes[0, PRESENT + 1 + k, 0, 6] = 0.3 + 0.4 * (k + 1)
-    disp, moving, static, _, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, _, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     centres = plane_cell_centres((100, 100), torch.device("cpu")).double()
     c0 = torch.tensor([0.4, 0.4], dtype=torch.float64)
 
@@ -114,7 +115,7 @@ def test_a_turning_box_maps_its_points_rigidly():
     # an in-place turn by 90 degrees: a point 1 m ahead of the centre goes 1 m to its left
     boxes, valid = _boxes(speed=0.0)
     boxes[0, PRESENT + 1 :, 0, 6] = math.pi / 2
-    disp, moving, _, _, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, _, _, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     # cell (51, 50) has its centre at (1.2, 0.4): 0.8 m ahead of the car's centre -> (0.4, 1.2)
     assert torch.allclose(disp[0, 0, :, 51, 50], torch.tensor([-1.0, 1.0]), atol=1e-4)
     assert moving[0, 0, 51, 50] and not moving[0, 0, 50, 50]  # the centre turns in place
@@ -123,7 +124,7 @@ def test_a_turning_box_maps_its_points_rigidly():
 def test_an_agent_invalid_now_has_no_target():
     boxes, valid = _boxes(speed=1.6)
     valid[0, PRESENT] = False
-    disp, moving, static, agents, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, agents, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     assert not moving.any() and (disp == 0).all()
     assert static.all()  # no box covers any cell now: the world stands still
     # but where it is at each step is still an agent's place: rows 60..64 at the last step
@@ -133,7 +134,7 @@ def test_an_agent_invalid_now_has_no_target():
 def test_an_agent_invalid_at_a_future_frame_has_no_target_at_that_frame():
     boxes, valid = _boxes(speed=1.6)
     valid[0, PRESENT + 3] = False  # step 2
-    disp, moving, static, agents, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, agents, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     assert not moving[0, 2].any() and (disp[0, 2] == 0).all()
     assert not static[0, 2][PRESENT_CAR].any()  # neither moving nor static: no target
     assert static[0, 2][~PRESENT_CAR].all()
@@ -145,7 +146,7 @@ def test_an_agent_invalid_at_a_future_frame_has_no_target_at_that_frame():
 
 def test_a_parked_car_is_static_not_moving():
     boxes, valid = _boxes(speed=0.0)
-    disp, moving, static, agents, _ = agent_motion(boxes, valid, margin=MARGIN)
+    disp, moving, static, agents, _, _ = agent_motion(boxes, valid, margin=MARGIN)
     assert not moving.any() and (disp.abs() < 1e-4).all()
     assert static.all()  # its cells keep their content: displacement target 0
     assert all(torch.equal(agents[0, k], PRESENT_CAR) for k in range(6))
@@ -153,7 +154,7 @@ def test_a_parked_car_is_static_not_moving():
 
 def test_min_flow_decides_what_moves():
     boxes, valid = _boxes(speed=0.32)  # 0.4 cells per frame: 0.4 (k + 1) cells at step k
-    _, moving, static, _, _ = agent_motion(boxes, valid, margin=MARGIN, min_flow=1.0)
+    _, moving, static, _, _, _ = agent_motion(boxes, valid, margin=MARGIN, min_flow=1.0)
     # steps 0 and 1 (0.4 and 0.8 cells) are under 1 cell: static; from step 2 (1.2 cells) moving
     assert not moving[0, :2].any() and static[0, :2].all()
     assert all(torch.equal(moving[0, k], PRESENT_CAR) for k in range(2, 6))

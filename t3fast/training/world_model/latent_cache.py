@@ -37,7 +37,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.training.triplane_cache import encoder_digest
 from t3fast.training.world_model.windows import ego_aligned_window
 
-CACHE_FORMAT = 3  # 2: the agents' velocities are stored with each window; 3: over one and two steps
+CACHE_FORMAT = 4  # 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained
 
 
 def world_digest(windows: SyntheticDriving) -> str:

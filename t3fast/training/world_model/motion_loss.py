@@ -7,14 +7,18 @@ of the xy plane). A plain L1 over the plane therefore rewards copying. Here:
 * ``latent``: L1 + gamma * L2 between the predicted and the encoded future xy planes, each
   cell weighted ``1 + agent_weight`` where an agent is, now or at that step (so the moving
   content carries a fixed share of the loss however small it is), else 1;
-* ``flow``: L1 between the predicted forward displacement of the present cells and the
-  agents' motion (:func:`~t3fast.training.world_model.motion_targets.agent_motion`) on every
-  cell a seen agent's box covers now, moving or parked (a parked car the tracker sees drift
-  must stand still), plus ``static_flow_weight`` x the displacement's size on the cells no box
+* ``flow``: per agent and step, L1 between the mean predicted forward displacement over the
+  tracked cells its box covers now and the mean of its true motion there
+  (:func:`~t3fast.training.world_model.motion_targets.agent_motion`): the label-space render
+  moves an agent as a whole by that mean, so this is the error it makes, and each agent counts
+  once whatever its size (a per-cell L1 let the many cells of buses and parked cars outweigh the
+  pedestrians, and lowered it without moving agents better). Moving agents (``flow_moving``)
+  and seen agents that did not move (``flow_parked``: a parked car the tracker sees drift must
+  stand still) are averaged apart and added, so the few moving ones are not diluted by the
+  many parked ones. Plus ``static_flow_weight`` x the displacement's size on the cells no box
   covers and no tracked agent touches. The cells of a tracked agent just outside its box (the
   ring its velocity is spread to, a plane cell it only grazes) have no target: told to stand
-  still there, a motion head shrank every agent's motion, as the render moves an agent by the
-  mean over all its cells.
+  still there, a motion head shrank every agent's motion.
 
 ``total = latent + flow_weight * flow`` (logged as ``loss``) is exactly what the gradient sees. Also logged, without
 gradient: the same latent loss of the copy forecast (the present plane repeated), the bar a
@@ -39,8 +43,22 @@ def _latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) ->
     return (weight * err).sum() / weight.sum()
 
 
-def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) -> tuple[Tensor, dict[str, float]]:
-    """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc)."""
+def agent_means(values: Tensor, owner: Tensor, cells: Tensor, agents: int) -> tuple[Tensor, Tensor]:
+    """Per agent, the mean of per-cell ``values`` ``[B, S, 2, H, W]`` over the cells ``cells``
+    (bool ``[B, S, H, W]``) it owns (``owner`` ``[B, H, W]``, -1 none) -> (means
+    ``[B, S, agents, 2]``, cell counts ``[B, S, agents]``)."""
+    b, s = values.shape[:2]
+    index = torch.where(cells, owner[:, None], agents).flatten(2)  # [B, S, HW]; ``agents``: no one
+    sums = values.new_zeros(b, s, 2, agents + 1).scatter_add_(3, index[:, :, None].expand(-1, -1, 2, -1),
+                                                               values.flatten(3))
+    count = values.new_zeros(b, s, agents + 1).scatter_add_(2, index, cells.flatten(2).to(values.dtype))
+    return (sums / count[:, :, None].clamp(min=1)).transpose(2, 3)[:, :, :agents], count[:, :, :agents]
+
+
+def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig,
+                min_flow: float = 0.5) -> tuple[Tensor, dict[str, float]]:
+    """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc); an
+    agent moves when its true mean motion is at least ``min_flow`` plane cells."""
     planes = batch.planes
     history = planes.map(lambda p: p[:, : PRESENT + 1])
     futures, displacements, _ = model(history, batch.past_actions, motion=True, velocity=batch.velocity)
@@ -48,19 +66,25 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig) ->
     steps = pred.shape[1]
     target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]
     present = planes.xy[:, PRESENT : PRESENT + 1]
-    target_disp, moving, static, agents, covered = agent_motion(batch.boxes, batch.box_valid, tuple(pred.shape[-2:]))
+    target_disp, moving, static, agents, covered, owner = agent_motion(batch.boxes, batch.box_valid,
+                                                                       tuple(pred.shape[-2:]), min_flow=min_flow)
     target_disp, moving, static, agents = (m[:, :steps] for m in (target_disp, moving, static, agents))
-    parked = static & covered[:, None]
     tracked = (batch.velocity != 0).any(1, keepdim=True)  # [B, 1, H, W]
     elsewhere = static & ~covered[:, None] & ~tracked
     weight = 1.0 + loss.agent_weight * agents.float()
     latent = _latent_error(pred, target, weight, loss.gamma)
-    flow_error = (displacements - target_disp).abs().sum(2)  # on parked cells: the displacement's size
-    flow_moving = (flow_error * moving).sum() / moving.sum().clamp(min=1)
-    flow_parked = (flow_error * parked).sum() / parked.sum().clamp(min=1)
-    boxed = (flow_error * (moving | parked)).sum() / (moving | parked).sum().clamp(min=1)
+    # per agent: the cells the render moves it by (tracked, under its box) whose target is known
+    seen = (moving | (static & covered[:, None])) & tracked
+    n_agents = batch.boxes.shape[2]
+    pred_mean, count = agent_means(displacements, owner, seen, n_agents)
+    true_mean, _ = agent_means(target_disp, owner, seen, n_agents)
+    error = (pred_mean - true_mean).abs().sum(-1)  # [B, S, A]
+    is_moving = (count > 0) & (true_mean.norm(dim=-1) >= min_flow)
+    is_parked = (count > 0) & ~is_moving
+    flow_moving = (error * is_moving).sum() / is_moving.sum().clamp(min=1)
+    flow_parked = (error * is_parked).sum() / is_parked.sum().clamp(min=1)
     flow_static = (displacements.abs().sum(2) * elsewhere).sum() / elsewhere.sum().clamp(min=1)
-    flow_term = boxed + loss.static_flow_weight * flow_static
+    flow_term = flow_moving + flow_parked + loss.static_flow_weight * flow_static
     total = latent + loss.flow_weight * flow_term
     with torch.no_grad():
         copy = _latent_error(present.expand_as(target), target, weight, loss.gamma)

@@ -38,7 +38,7 @@ def _rotate(v: Tensor, yaw: Tensor) -> Tensor:
 def agent_motion(
     boxes: Tensor, box_valid: Tensor, shape: tuple[int, int] = (100, 100), margin: float = 0.4,
     min_flow: float = 0.5,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Forward displacement targets of the present cells, for every future step of windows.
 
     Args:
@@ -53,7 +53,8 @@ def agent_motion(
         ``[B, S, H, W]`` (present cells of an agent seen now and then that moved at least
         ``min_flow``), ``static`` bool ``[B, S, H, W]`` (cells no box covers now, and those of
         agents that did not move: displacement 0), ``agents`` bool ``[B, S, H, W]`` (cells a
-        box covers now or at that step), ``covered`` bool ``[B, H, W]`` (cells a box covers now).
+        box covers now or at that step), ``covered`` bool ``[B, H, W]`` (cells a box covers now)
+        and ``owner`` int64 ``[B, H, W]`` (the box that covers each cell now, ``-1`` none).
     """
     b, t, a, _ = boxes.shape
     h, w = shape
@@ -87,4 +88,5 @@ def agent_motion(
         static.append(~covered_now | (seen & ~moved))
         agents.append(covered_now | (inside(future)[0] & box_valid[:, frame, :, None]).any(1))
     disp = torch.stack(displacements, 1).view(b, -1, h, w, 2).permute(0, 1, 4, 2, 3)
-    return (disp, *(torch.stack(m, 1).view(b, -1, h, w) for m in (moving, static, agents)), covered_now.view(b, h, w))
+    return (disp, *(torch.stack(m, 1).view(b, -1, h, w) for m in (moving, static, agents)), covered_now.view(b, h, w),
+            owner.view(b, h, w))

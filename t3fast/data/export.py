@@ -20,9 +20,11 @@ import re
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from t3fast.data import classes as C
+from t3fast.data.route import COMMANDS, route_command
 from t3fast.data.synthetic.dataset import PackedScene, SyntheticScenes
 
 FUTURE_STEPS = 6
@@ -131,6 +133,7 @@ def scene_infos(packed: PackedScene, boxes_world: np.ndarray) -> list[dict]:
                 "ego2global_rotation": _yaw_quaternion(yaw),
                 "gt_ego_fut_trajs": ego_fut,
                 "gt_ego_fut_masks": ego_mask,
+                "gt_ego_fut_cmd": np.eye(len(COMMANDS), dtype=np.float32)[int(route_command(torch.tensor(ego_fut)))],
                 "gt_boxes": packed.boxes[t, valid],
                 "gt_names": np.array([C.CLASS_NAMES[c] for c in packed.labels[valid]]),
                 "instance_tokens": np.array([f"{name}-agent{a:05d}" for a in valid]),

@@ -11,6 +11,8 @@ Each scene's list is time ordered (2 Hz key frames). Keys read from a frame dict
 * ``ego2global_translation`` (3,), ``ego2global_rotation`` (4,) quaternion w, x, y, z;
 * ``gt_ego_fut_trajs`` (6, 2): per-step ego offsets (dx, dy) over the next 6 frames in
   this frame's coordinates; ``gt_ego_fut_masks`` (6,) optional;
+* ``gt_ego_fut_cmd`` (3,) optional: the route command, one-hot (turn right, turn left, go
+  straight; ``t3fast.data.route``); without it the command is derived from the ego's future;
 * ``gt_boxes`` (N, 7): x, y, z, l, w, h, yaw in this frame's coordinates (yaw
   counter-clockwise from +x, length along the heading); ``gt_names`` (N,) nuScenes
   detection names; ``instance_tokens`` (N,) identities across frames (optional);
@@ -42,6 +44,7 @@ import torch
 from torch.utils.data import Dataset
 
 from t3fast.data import classes as C
+from t3fast.data.route import COMMANDS
 from t3fast.data.safe_pickle import load_restricted
 from t3fast.data.sample import NUM_FUTURE, PRESENT, WINDOW, DrivingSample, build_sample, random_flip, window_starts
 from t3fast.errors import DataFormatError
@@ -298,6 +301,11 @@ def _check_annotations(frame: dict[str, Any], where: str) -> None:
         masks = _numbers(frame["gt_ego_fut_masks"], "gt_ego_fut_masks", where)
         if masks.shape != (NUM_FUTURE,):
             raise Occ3DFormatError(f"{where}: 'gt_ego_fut_masks' has shape {masks.shape}, expected ({NUM_FUTURE},)")
+    if "gt_ego_fut_cmd" in frame:
+        command = _numbers(frame["gt_ego_fut_cmd"], "gt_ego_fut_cmd", where)
+        if command.shape != (len(COMMANDS),) or sorted(command.tolist()) != [0, 0, 1]:
+            raise Occ3DFormatError(f"{where}: 'gt_ego_fut_cmd' must be a one-hot of {len(COMMANDS)} "
+                                   f"({', '.join(COMMANDS)}), got {command.tolist()}")
     boxes = _numbers(frame.get("gt_boxes", np.zeros((0, 7))), "gt_boxes", where)
     if boxes.size == 0:
         boxes = boxes.reshape(0, 7)
@@ -442,6 +450,8 @@ class Occ3DNuScenes(Dataset):
                 scene=scene,
                 start=start,
                 future_actions=self._future_actions(scene, start, frames[PRESENT]),
+                command=int(np.argmax(frames[PRESENT]["gt_ego_fut_cmd"])) if "gt_ego_fut_cmd" in frames[PRESENT]
+                else None,
             )
         self._check_finite(sample, frames)
         return random_flip(sample) if self.flip else sample

@@ -17,6 +17,8 @@ present (the "current" frame), 5..10 the future (3 s).
   which agent is annotated in which frame (centre inside the 80 m grid);
   ``box_labels`` int64 ``[A]`` Occ3D class ids.
 * ``ego_poses`` float32 ``[11, 4, 4]``: ego -> world per frame.
+* ``command`` int64 ``[]``: the route command of the present frame (``t3fast.data.route``:
+  turn right / turn left / go straight; it looks 3 s ahead).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
+
+from t3fast.data.route import mirror_command, route_command
 
 NUM_PAST = 4
 NUM_FUTURE = 6
@@ -44,6 +48,7 @@ class DrivingSample:
     box_valid: torch.Tensor
     box_labels: torch.Tensor
     ego_poses: torch.Tensor
+    command: torch.Tensor
     scene: str
     start: int  # index in its scene of the window's first frame
 
@@ -77,6 +82,7 @@ class DrivingBatch:
     box_valid: torch.Tensor
     box_labels: torch.Tensor
     ego_poses: torch.Tensor
+    command: torch.Tensor  # [B]
     scene: list[str]
     start: list[int]
 
@@ -115,6 +121,7 @@ def collate_samples(samples: list[DrivingSample]) -> DrivingBatch:
         box_valid=valid,
         box_labels=labels,
         ego_poses=torch.stack([s.ego_poses for s in samples]),
+        command=torch.stack([s.command for s in samples]),
         scene=[s.scene for s in samples],
         start=[s.start for s in samples],
     )
@@ -159,6 +166,7 @@ def build_sample(
     scene: str,
     start: int,
     future_actions: np.ndarray | None = None,
+    command: int | None = None,
 ) -> DrivingSample:
     """Assemble a sample from one window of a scene.
 
@@ -166,7 +174,9 @@ def build_sample(
     boxes: ``[11, A, 7]`` with each frame's boxes in THAT frame's ego coordinates,
     box_valid ``[11, A]``, box_labels ``[A]``. Agents never valid in the window are
     dropped; boxes are moved into the present frame. ``future_actions`` overrides
-    the future actions computed from the poses (Occ3D: ``gt_ego_fut_trajs``).
+    the future actions computed from the poses (Occ3D: ``gt_ego_fut_trajs``); ``command``
+    the route command derived from the future actions (:func:`~t3fast.data.route.route_command`;
+    Occ3D: ``gt_ego_fut_cmd``).
     """
     keep = box_valid.any(axis=0)
     boxes, box_valid, box_labels = boxes[:, keep], box_valid[:, keep], box_labels[keep]
@@ -178,15 +188,19 @@ def build_sample(
     past, fut = actions_from_poses(ego_poses)
     if future_actions is not None:
         fut = future_actions
+    fut = np.asarray(fut, dtype=np.float32)
+    if command is None:
+        command = int(route_command(torch.from_numpy(fut)))
     return DrivingSample(
         occ=torch.from_numpy(np.ascontiguousarray(occ, dtype=np.uint8)),
         mask_camera=torch.from_numpy(np.ascontiguousarray(mask_camera, dtype=bool)),
         past_actions=torch.from_numpy(past.astype(np.float32)),
-        future_actions=torch.from_numpy(np.asarray(fut, dtype=np.float32)),
+        future_actions=torch.from_numpy(fut),
         boxes=torch.from_numpy(present_boxes.astype(np.float32)),
         box_valid=torch.from_numpy(box_valid.astype(bool)),
         box_labels=torch.from_numpy(box_labels.astype(np.int64)),
         ego_poses=torch.from_numpy(ego_poses.astype(np.float32)),
+        command=torch.tensor(command, dtype=torch.int64),
         scene=scene,
         start=start,
     )
@@ -199,7 +213,8 @@ def flip_sample(sample: DrivingSample, axis: str) -> DrivingSample:
     """Mirror a sample across the ego's x axis (``axis="y"``: y -> -y) or y axis (``"x"``: x -> -x).
 
     Applied consistently to occupancy and masks (every frame), actions, boxes
-    (position and yaw) and poses (the world is mirrored with the ego: pose -> F pose F).
+    (position and yaw), poses (the world is mirrored with the ego: pose -> F pose F) and the
+    route command (mirrored left-right, a left turn is a right one).
     """
     k = _FLIP[axis]
     occ = sample.occ.flip(k + 1)
@@ -222,6 +237,7 @@ def flip_sample(sample: DrivingSample, axis: str) -> DrivingSample:
         future_actions=sample.future_actions * sign,
         boxes=boxes,
         ego_poses=f @ sample.ego_poses @ f,
+        command=mirror_command(sample.command) if axis == "y" else sample.command,
     )
 
 

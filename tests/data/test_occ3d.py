@@ -23,6 +23,7 @@ def test_round_trip_export_equals_synthetic(synthetic, exported):
         assert torch.equal(a.box_labels, b.box_labels) and torch.equal(a.box_valid, b.box_valid)
         assert torch.allclose(a.boxes, b.boxes, atol=1e-3)
         assert torch.allclose(a.ego_poses, b.ego_poses, atol=1e-3)
+        assert torch.equal(a.command, b.command)  # exported as gt_ego_fut_cmd and read back
 
 
 def test_without_instance_tokens_future_boxes_come_from_agent_trajectories(synthetic, exported, tmp_path):
@@ -128,6 +129,26 @@ def test_bad_info_pickles(tmp_path):
     keyless.write_bytes(pickle.dumps({"infos": {"scene-1": [{"token": "a", "ego2global_translation": [0, 0, 0]}]}}))
     with pytest.raises(Occ3DFormatError, match="no 'ego2global_rotation'"):
         read_infos(keyless)
+
+
+def test_the_info_files_route_command_is_read_not_derived(exported, tmp_path):
+    from t3fast.data.route import LEFT, RIGHT
+
+    root, info = exported
+    with open(info, "rb") as f:
+        data = pickle.load(f)
+    scene = next(iter(data["infos"]))
+    derived = Occ3DNuScenes(root, info)[0].command
+    assert data["infos"][scene][PRESENT]["gt_ego_fut_cmd"].tolist() == np.eye(3)[int(derived)].tolist()
+    other = LEFT if int(derived) != LEFT else RIGHT
+    data["infos"][scene][PRESENT]["gt_ego_fut_cmd"] = np.eye(3)[other]
+    changed = tmp_path / "command.pkl"
+    changed.write_bytes(pickle.dumps(data))
+    assert int(Occ3DNuScenes(root, changed)[0].command) == other
+    for frame in data["infos"][scene]:  # without the key: derived from the ego's future
+        del frame["gt_ego_fut_cmd"]
+    changed.write_bytes(pickle.dumps(data))
+    assert torch.equal(Occ3DNuScenes(root, changed)[0].command, derived)
 
 
 def test_bad_trajectory_shape(exported, tmp_path):

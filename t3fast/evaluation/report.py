@@ -57,7 +57,9 @@ def evaluate_methods(
     (speed and parameters null), scored in one pass over the windows. The first model, when
     ego-aligned, also gets ``<name>_gt_ego`` (its forecast steered along the true future poses:
     uses ground-truth ego motion) and, when it keeps the observed static world,
-    ``<name>_decoded`` (decoded frames only), both from the same forecasting pass; the others
+    ``<name>_decoded`` (decoded frames only), both from the same forecasting pass, and when its
+    planner reads the route command (which looks 3 s ahead) ``<name>_no_command`` (planned
+    without it); the others
     (the ablations in the demo) get their own row."""
     methods = {}
     for position, (name, model) in enumerate(models.items()):
@@ -68,6 +70,8 @@ def evaluate_methods(
             methods[f"{name}_gt_ego"] = t3former_method(model, gt_ego=True, shared=shared)
             if model.static_from_present:  # what the latent forecasts on its own, without the observed world
                 methods[f"{name}_decoded"] = t3former_method(model, keep_static=False, shared=shared)
+        if position == 0 and model.reads_command:  # its plan and forecast without the route command
+            methods[f"{name}_no_command"] = t3former_method(model, shared=SharedRollout(model, command=False))
     if baselines:
         methods.update(BASELINES)
     results = evaluate_many(methods, dataset, indices, device=device, use_mask=use_mask, progress=progress,
@@ -109,6 +113,8 @@ def metrics_markdown(results: dict[str, dict], title: str = "") -> str:
     lines += ["", "mIoU/IoU in percent (0s: reconstruction of the present frame; avg: mean of 1-3 s); moving mIoU: "
               "the mIoU over bicycle, bus, car, construction vehicle, motorcycle, pedestrian, trailer, truck. "
               "Rows ending in _gt_ego use the true future ego motion. "
+              "A planner that reads the route command (from the ego's lateral offset 3 s ahead) is given it, "
+              "except in rows ending in _no_command. "
               "L2 at: distance at the horizon; mean-L2: mean over the steps up to it."]
     return "\n".join(lines).lstrip("\n") + "\n"
 

@@ -71,10 +71,12 @@ class SharedRollout:
     ``_gt_ego``, ``_decoded``): the forecaster does not read the ego's motion, so those rows
     differ only in the poses their frames are rendered from and in keeping the observed
     world. Holds the last batch's results (rows are scored batch by batch, see
-    :func:`evaluate_many`)."""
+    :func:`evaluate_many`). A planner that reads the route command gets the batch's unless
+    ``command`` is False (the rows without it)."""
 
-    def __init__(self, model: T3Former):
+    def __init__(self, model: T3Former, command: bool = True):
         self.model = model
+        self.command = command and model.reads_command
         self._batch: DrivingBatch | None = None
         self._out: dict = {}
 
@@ -84,7 +86,8 @@ class SharedRollout:
             poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
             past = model.encode_history(batch.past_occ, poses)
             velocity = model.agent_velocity(batch.past_occ, poses)
-            futures, _, planned, motion = model.rollout(past, actions, NUM_FUTURE, velocity=velocity)
+            command = batch.command if self.command else None
+            futures, _, planned, motion = model.rollout(past, actions, NUM_FUTURE, velocity=velocity, command=command)
             present = past.map(lambda p: p[:, -1])
             frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
             self._out = dict(futures=futures, motion=motion, actions=planned, poses=frame_poses, present=present,

@@ -131,6 +131,9 @@ class WorldModelConfig:
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
+    # "phi_act": the papers' MotionPlanner (reads the forecast triplanes); "route": RoutePlanner
+    # (the road ahead in the present plane, the past motion and the route command)
+    planner: str = "phi_act"
     planner_widths: list[int] = field(default_factory=lambda: [64, 128, 256, 512])  # ResNet-18
     d_act: int = 50
     planner_heads: int = 5
@@ -147,6 +150,11 @@ class WorldModelConfig:
     def __post_init__(self) -> None:
         if self.forecaster not in ("delta", "flow"):
             raise ConfigError(f"'forecaster' must be 'delta' or 'flow', got {self.forecaster!r}")
+        if self.planner not in ("phi_act", "route"):
+            raise ConfigError(f"'planner' must be 'phi_act' or 'route', got {self.planner!r}")
+        if self.planner == "route" and not self.ego_aligned:
+            raise ConfigError("'planner'='route' reads the road ahead in the ego-aligned present plane: it needs "
+                              "ego_aligned=true")
         check_ints("flow_widths", self.flow_widths, 1, min_len=1)
         for i, width in enumerate(self.flow_widths):
             check_group_norm_width(f"flow_widths[{i}]", width)

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
+from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
 from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
@@ -37,6 +38,7 @@ from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner, constant_turn_rate
+from t3fast.models.route_planner import RoutePlanner
 from t3fast.models.triplane import Triplane
 
 
@@ -160,6 +162,23 @@ def check_future_actions(future_actions: Tensor, batch: int) -> None:
     check_finite("future_actions", future_actions)
 
 
+def check_command(command: Tensor | None, batch: int, reads_command: bool) -> None:
+    """``command`` must be None or route commands int64 ``[B]`` in ``0..2``
+    (:mod:`t3fast.data.route`), given to a model whose planner reads them."""
+    if command is None:
+        return
+    if not reads_command:
+        raise UsageError("this model's planner does not read a route command (world_config.planner = 'phi_act'); "
+                         "pass command=None")
+    if not isinstance(command, Tensor) or command.dtype not in (torch.int64, torch.int32) or list(
+            command.shape) != [batch]:
+        got = f"{command.dtype} {list(command.shape)}" if isinstance(command, Tensor) else type(command).__name__
+        raise UsageError(f"command must be route commands int64 [B] with B = {batch}, got {got}")
+    if command.numel() and not bool(((command >= 0) & (command < len(COMMANDS))).all()):
+        bad = command[(command < 0) | (command >= len(COMMANDS))][0]
+        raise UsageError(f"command values must be in 0..{len(COMMANDS) - 1} ({', '.join(COMMANDS)}), got {int(bad)}")
+
+
 class T3Former(nn.Module):
     """Past occupancy and motion -> future occupancy, triplanes and ego trajectory.
 
@@ -171,7 +190,7 @@ class T3Former(nn.Module):
         self,
         encoder: TriplaneEncoder,
         forecaster: DeltaTriplaneForecaster | FlowTriplaneForecaster,
-        planner: MotionPlanner,
+        planner: MotionPlanner | RoutePlanner,
         decoder: TriplaneDecoder,
         ego_aligned: bool = False,
         static_from_present: bool = True,
@@ -216,7 +235,12 @@ class T3Former(nn.Module):
             predict_delta=world.predict_delta,
             bev=bev,
         )
-        planner = MotionPlanner(
+        planner = RoutePlanner(
+            channels=autoencoder.channels,
+            plane_shape=autoencoder.plane_shape[:2],
+            steps=world.steps,
+            past=world.past_actions,
+        ) if world.planner == "route" else MotionPlanner(
             channels=autoencoder.channels,
             widths=world.planner_widths,
             d_act=world.d_act,
@@ -231,6 +255,11 @@ class T3Former(nn.Module):
                     render_agents=world.render_agents)
         model.autoencoder_config, model.world_config = autoencoder, world
         return model
+
+    @property
+    def reads_command(self) -> bool:
+        """Whether the planner reads a route command (:class:`~t3fast.models.route_planner.RoutePlanner`)."""
+        return isinstance(self.planner, RoutePlanner)
 
     def train(self, mode: bool = True) -> T3Former:
         super().train(mode)
@@ -315,7 +344,8 @@ class T3Former(nn.Module):
         return (*self.forecaster(past, steps, first_step), None)
 
     def rollout(
-        self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0, velocity: Tensor | None = None
+        self, past: Triplane, past_actions: Tensor, steps: int, first_step: int = 0, velocity: Tensor | None = None,
+        command: Tensor | None = None,
     ) -> tuple[list[Triplane], list[Triplane], Tensor, Tensor | None]:
         """Future triplanes, their changes, displacements ``[B, steps, 2]`` (differentiable), and
         the flow forecaster's forward displacements of the present xy cells ``[B, steps, 2, H, W]``
@@ -326,9 +356,16 @@ class T3Former(nn.Module):
             past_actions: ``[B, T_p + first_step, 2]`` displacements so far (present frame).
             velocity: the agents' velocities of :meth:`agent_velocity` (forecasters with a
                 tracker prior need them).
+            command: route commands int64 ``[B]`` (:mod:`t3fast.data.route`) for a planner that
+                reads them (:class:`~t3fast.models.route_planner.RoutePlanner`); None: none given.
         """
         futures, deltas, motion = self._forecaster(past, steps, first_step, velocity)
         present = past.map(lambda p: p[:, -1])
+        if isinstance(self.planner, RoutePlanner):
+            if first_step != 0:
+                raise ValueError(f"the route planner plans every step from the present, not from step {first_step}")
+            actions = self.planner(past.xy[:, -1], past.xy[:, -2], past_actions, command)[:, :steps]
+            return futures, deltas, actions, motion
         # The planning loss does not reach the forecaster: its gradient through the predicted
         # triplanes competes with the triplane loss and stalls forecasting (see the tests).
         plan_in = [[t.map(torch.Tensor.detach) for t in ts] for ts in (futures, deltas)]
@@ -338,7 +375,8 @@ class T3Former(nn.Module):
     def forward(
         self, past: Triplane, past_actions: Tensor, steps: int = 6, first_step: int = 0,
         points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
-    ) -> tuple[list[Triplane], Tensor, list[Tensor] | None]:
+        plan_from: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
+    ) -> tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]:
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
 
@@ -346,19 +384,26 @@ class T3Former(nn.Module):
         ``motion`` (the flow forecaster), instead its
         :meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.predict`: (future
         triplanes, forward displacements of the present cells ``[B, S, 2, H, W]``, Deltas
-        ``[B, S, C, H, W]``); the planner is not run. ``velocity``: as for :meth:`rollout`.
+        ``[B, S, C, H, W]``) and the route planner's displacements ``[B, S, 2]`` for the inputs
+        ``plan_from`` (present and previous xy planes, past displacements, commands: see
+        :class:`~t3fast.models.route_planner.RoutePlanner`; they may be other windows than the
+        forecaster's), else None. ``velocity``: as for :meth:`rollout`.
         """
         if motion:
             if not isinstance(self.forecaster, FlowTriplaneForecaster):
                 raise ValueError("motion=True needs the flow forecaster (world_config.forecaster = 'flow')")
-            return self.forecaster.predict(past, velocity)
+            if plan_from is not None and not self.reads_command:
+                raise ValueError("plan_from is the route planner's input: it needs world_config.planner = 'route'")
+            actions = None if plan_from is None else self.planner(*plan_from)
+            return (*self.forecaster.predict(past, velocity), actions)
         futures, _, actions, _ = self.rollout(past, past_actions, steps, first_step, velocity)
         logits = None if points is None else [self.decoder(t, p) for t, p in zip(futures, points)]
         return futures, actions, logits
 
     @torch.no_grad()
     def forecast(
-        self, past_occupancy: Tensor, past_motion: Tensor, future_actions: Tensor | None = None, steps: int = 6
+        self, past_occupancy: Tensor, past_motion: Tensor, future_actions: Tensor | None = None, steps: int = 6,
+        command: Tensor | None = None,
     ) -> Forecast:
         """The full forecasting step.
 
@@ -371,6 +416,9 @@ class T3Former(nn.Module):
                 the present frame to forecast along (the world model as a simulator); None:
                 the planner plans them.
             steps: future frames (6 = 3 s at 2 Hz); ``future_actions`` sets it when given.
+            command: route commands int64 ``[B]`` (turn right / left / go straight,
+                :mod:`t3fast.data.route`) for a planner that reads them (``planner="route"``);
+                None plans without one. Unused when ``future_actions`` are given.
 
         Raises :class:`~t3fast.errors.UsageError` (a ``ValueError``) for a number of past
         frames other than the model's ``history``, motion that does not fit the frames, and
@@ -389,7 +437,7 @@ class T3Former(nn.Module):
         poses, actions = split_past_motion(past_motion)
         past = self.encode_history(past_occupancy, poses)
         return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses,
-                                            self.agent_velocity(past_occupancy, poses))
+                                            self.agent_velocity(past_occupancy, poses), command)
 
     def _check_history(self, name: str, frames: int) -> None:
         """The forecaster was trained on ``history`` past frames (the present included); fewer
@@ -403,6 +451,7 @@ class T3Former(nn.Module):
     def forecast_from_triplanes(
         self, past: Triplane, past_actions: Tensor, steps: int = 6, future_actions: Tensor | None = None,
         present: Tensor | None = None, past_poses: Tensor | None = None, velocity: Tensor | None = None,
+        command: Tensor | None = None,
     ) -> Forecast:
         """The forecasting step from encoded past frames (planes ``[B, T, C, H, W]`` from
         :meth:`encode_history`): forecaster, planner (unless ``future_actions`` are given) and
@@ -411,20 +460,21 @@ class T3Former(nn.Module):
         frame's labels ``[B, X, Y, Z]``, for :func:`observed_static`; ``past_poses``: the past
         planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`);
         ``velocity``: the agents' velocities (:meth:`agent_velocity`) for a forecaster with a
-        tracker prior.
+        tracker prior; ``command``: as for :meth:`forecast`.
         Refuses (:class:`~t3fast.errors.UsageError`) a number of past frames ``T`` other
         than the model's ``history`` and non-finite motion, as :meth:`forecast` does."""
         self._check_history("past", past.xy.shape[1])
         check_finite("past_actions", past_actions)
         if past_poses is not None:
             check_finite("past_poses", past_poses)
+        check_command(command, past.xy.shape[0], self.reads_command)
         if future_actions is None:
             if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
                 raise UsageError(f"steps must be a positive integer, got {steps!r}")
         else:
             check_future_actions(future_actions, past.xy.shape[0])
         if future_actions is None:
-            futures, _, actions, motion = self.rollout(past, past_actions, steps, velocity=velocity)
+            futures, _, actions, motion = self.rollout(past, past_actions, steps, velocity=velocity, command=command)
             poses = planned_poses(actions, past_actions, past_poses)
         else:
             futures, _, motion = self._forecaster(past, future_actions.shape[1], velocity=velocity)

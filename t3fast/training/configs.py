@@ -166,12 +166,16 @@ class WorldLossConfig:
     agent_weight: float = 20.0  # extra latent-loss weight of the cells an agent covers now or then
     flow_weight: float = 0.1  # weight of the flow term (L1 in plane cells on the agents' cells)
     static_flow_weight: float = 0.1  # within the flow term: the flow's size where nothing moves
+    # the route planner (model.planner=route): share of training windows planned without the command
+    command_dropout: float = 0.3
 
     def __post_init__(self) -> None:
         _weights("loss.", self, ("gamma", "xi", "action_weight", "lovasz_weight", "agent_weight", "flow_weight",
                                  "static_flow_weight"), "0 turns the term off")
         if not 1 <= self.rollout_steps <= NUM_FUTURE:
             raise ConfigError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {self.rollout_steps}")
+        if not (isinstance(self.command_dropout, int | float) and 0 <= self.command_dropout <= 1):
+            raise ConfigError(f"loss.command_dropout must be a share in [0, 1], got {self.command_dropout!r}")
         _at_least("loss.", self, {"num_occupied": 0, "num_near_free": 0, "num_far_free": 0, "num_changed": 0})
 
 

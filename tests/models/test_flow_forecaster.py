@@ -253,7 +253,8 @@ def test_world_model_builds_the_forecaster_its_config_names():
     assert isinstance(model.forecaster, FlowTriplaneForecaster)
     past = Triplane(torch.randn(1, 5, 4, 100, 100), torch.randn(1, 5, 4, 100, 16), torch.randn(1, 5, 4, 100, 16))
     assert model.forecaster.match_radius == world.match_radius == 6
-    futures, displacements, deltas = model(past, torch.zeros(1, 4, 2), motion=True)
+    futures, displacements, deltas, actions = model(past, torch.zeros(1, 4, 2), motion=True)
+    assert actions is None  # no route planner inputs
     assert len(futures) == 6 and displacements.shape == (1, 6, 2, 100, 100) and deltas.shape == (1, 6, 4, 100, 100)
     futures, _, actions, _ = model.rollout(past, torch.zeros(1, 4, 2), 6)
     assert len(futures) == 6 and actions.shape == (1, 6, 2)

@@ -99,6 +99,25 @@ def test_train_log_has_every_loss_part(world_ckpt):
     assert any(e["event"] == "eval" and "miou_avg" in e["values"] for e in events)
 
 
+def test_the_route_planner_trains_with_the_forecaster_and_is_scored_with_and_without_the_command(
+        world_ckpt, tmp_path, capsys):
+    root = world_ckpt.parent.parent
+    out = tmp_path / "route"
+    args = ["train-wm", "--config", "small", "--ae", str(root / "ae" / "last.pt"), f"data.cache_dir={root / 'cache'}",
+            f"train.out_dir={out}", *TINY_WM, "train.eval_every=0", "train.steps=2", "model.planner=route",
+            "planner_lr_scale=1.0"]
+    assert main(args) == 0
+    train = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert {"plan_l2", "plan_l2_3s", "flow_moving"} <= set(train[-1]["values"])
+    model = load_world_model(out / "last.pt")
+    assert model.reads_command and model.planner.head[-1].weight.abs().sum() > 0  # left constant turn rate
+    capsys.readouterr()
+    assert main(["eval", str(out / "last.pt"), "--scenes", "1", "--stride", "29", "--out", str(tmp_path / "ev")]) == 0
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert {"t3former", "t3former_no_command"} <= set(metrics)
+    assert metrics["t3former_no_command"]["l2_mean"]["avg"] is not None
+
+
 def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out

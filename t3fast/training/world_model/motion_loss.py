@@ -20,7 +20,8 @@ of the xy plane). A plain L1 over the plane therefore rewards copying. Here:
   ring its velocity is spread to, a plane cell it only grazes) have no target: told to stand
   still there, a motion head shrank every agent's motion.
 
-``total = latent + flow_weight * flow`` (logged as ``loss``) is exactly what the gradient sees. Also logged, without
+``total = latent + flow_weight * flow`` (+ ``action_weight`` x the route planner's position
+error when it trains, ``plan_l2``) (logged as ``loss``) is exactly what the gradient sees. Also logged, without
 gradient: the same latent loss of the copy forecast (the present plane repeated), the bar a
 forecaster has to get under.
 """
@@ -34,6 +35,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.latent_cache import AlignedBatch
 from t3fast.training.world_model.motion_targets import agent_motion
+from t3fast.training.world_model.plan_loss import PlanBatch, plan_error
 
 
 def _latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) -> Tensor:
@@ -55,13 +57,16 @@ def agent_means(values: Tensor, owner: Tensor, cells: Tensor, agents: int) -> tu
     return (sums / count[:, :, None].clamp(min=1)).transpose(2, 3)[:, :, :agents], count[:, :, :agents]
 
 
-def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig,
-                min_flow: float = 0.5) -> tuple[Tensor, dict[str, float]]:
+def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, min_flow: float = 0.5,
+                plan: PlanBatch | None = None) -> tuple[Tensor, dict[str, float]]:
     """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc); an
-    agent moves when its true mean motion is at least ``min_flow`` plane cells."""
+    agent moves when its true mean motion is at least ``min_flow`` plane cells. With ``plan``
+    (a route planner that trains), plus ``action_weight`` x its mean position error (metres,
+    :mod:`~t3fast.training.world_model.plan_loss`), in the same forward call."""
     planes = batch.planes
     history = planes.map(lambda p: p[:, : PRESENT + 1])
-    futures, displacements, _ = model(history, batch.past_actions, motion=True, velocity=batch.velocity)
+    futures, displacements, _, planned = model(history, batch.past_actions, motion=True, velocity=batch.velocity,
+                                               plan_from=None if plan is None else plan.inputs)
     pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
     steps = pred.shape[1]
     target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]
@@ -91,4 +96,8 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig,
     # the trainer logs ``total`` as ``loss``
     parts = {"latent": latent, "copy_latent": copy, "flow_moving": flow_moving, "flow_parked": flow_parked,
              "flow_static": flow_static}
+    if plan is not None:
+        error = plan_error(planned, plan.future_actions)
+        total = total + loss.action_weight * error.mean()
+        parts.update(plan_l2=error.mean(), plan_l2_3s=error[:, -1].mean())
     return total, {k: float(v.detach()) for k, v in parts.items()}

@@ -25,6 +25,7 @@ from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatent
 from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
+from t3fast.training.world_model.plan_loss import plan_batch
 from t3fast.training.world_model.windows import (
     EncodedWindows,
     SequenceBatch,
@@ -109,9 +110,13 @@ class WorldModelTask:
         return batch.planes.xy.shape[0] if isinstance(batch, AlignedBatch) else batch.occ.shape[0]
 
     def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, float]]:
-        if isinstance(batch, AlignedBatch):
-            return motion_loss(model, random_flips(batch) if self.cfg.data.latent_flips else batch, self.cfg.loss)
         core = model.module if hasattr(model, "module") else model
+        if isinstance(batch, AlignedBatch):
+            # a route planner that trains learns on the same windows, mirrored left-right only
+            plan = plan_batch(batch, self.cfg.loss.command_dropout) if (
+                core.reads_command and self.cfg.planner_lr_scale > 0) else None
+            flipped = random_flips(batch) if self.cfg.data.latent_flips else batch
+            return motion_loss(model, flipped, self.cfg.loss, plan=plan)
         steps = self.cfg.loss.rollout_steps
         if not 1 <= steps <= NUM_FUTURE:
             raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")

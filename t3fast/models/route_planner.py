@@ -1,0 +1,93 @@
+"""RoutePlanner: the ego's next displacements as a correction to constant speed and turn rate,
+read from the road ahead, the ego's past motion and the route command.
+
+Much of the ego's future is visible in the present scene (it brakes behind traffic, slows for
+curves, turns where the road turns); which way it goes at the next junction is what a route
+command says (:mod:`t3fast.data.route`). The planner reads, in a window ahead of the ego
+(:data:`AHEAD`: 8 m behind to 40 m ahead, 24 m to each side; 3 s at 13 m/s), the present
+ego-aligned xy plane and its change since the previous frame (what moves there), with a small
+strided CNN; an MLP adds the past displacements and the command (one-hot; all zero when no
+command is given: trained with the command dropped from a share of windows, it plans without
+one too) and predicts each future step's displacement minus constant turn rate's. Its last
+layer starts at zero: the untrained planner is constant turn rate exactly.
+
+Compared with the papers' Phi_act (:class:`~t3fast.models.planner.MotionPlanner`, kept as the
+``planner="phi_act"`` row), it reads the present scene rather than the forecast triplanes, and
+plans all steps in one pass.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from t3fast.data.classes import GRID_LOWER, GRID_UPPER
+from t3fast.data.route import COMMANDS
+from t3fast.models.blocks import group_norm
+from t3fast.models.planner import constant_turn_rate
+
+AHEAD = ((-8.0, 40.0), (-24.0, 24.0))  # metres along x and y (present frame) the planner reads
+ROUTE_WIDTHS = (16, 32, 32, 32)  # the CNN's stride-2 stages
+ROUTE_HIDDEN = 128
+
+
+def ahead_window(plane_shape: tuple[int, int]) -> tuple[slice, slice]:
+    """The xy-plane cells of :data:`AHEAD` for a plane of ``(H, W)`` cells over the grid."""
+    cells = []
+    for axis, (lo, hi) in enumerate(AHEAD):
+        size = (GRID_UPPER[axis] - GRID_LOWER[axis]) / plane_shape[axis]
+        first = max(0, round((lo - GRID_LOWER[axis]) / size))
+        last = min(plane_shape[axis], round((hi - GRID_LOWER[axis]) / size))
+        cells.append(slice(first, last))
+    return cells[0], cells[1]
+
+
+class RoutePlanner(nn.Module):
+    """Args:
+        channels: xy-plane channels C.
+        plane_shape: the xy plane's ``(H, W)``.
+        steps: future steps planned.
+        past: past displacements read.
+    """
+
+    reads_command = True
+
+    def __init__(self, channels: int, plane_shape: tuple[int, int], steps: int = 6, past: int = 4):
+        super().__init__()
+        self.steps, self.past = steps, past
+        self.window = ahead_window(plane_shape)
+        layers: list[nn.Module] = []
+        cin = 2 * channels
+        for width in ROUTE_WIDTHS:
+            layers += [nn.Conv2d(cin, width, 3, stride=2, padding=1), group_norm(width), nn.SiLU()]
+            cin = width
+        self.scene = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(16 * cin, ROUTE_HIDDEN),
+                                   nn.SiLU())
+        self.head = nn.Sequential(
+            nn.Linear(ROUTE_HIDDEN + 2 * past + len(COMMANDS), ROUTE_HIDDEN), nn.SiLU(),
+            nn.Linear(ROUTE_HIDDEN, ROUTE_HIDDEN), nn.SiLU(),
+            nn.Linear(ROUTE_HIDDEN, 2 * steps),
+        )
+        nn.init.zeros_(self.head[-1].weight)  # untrained: constant turn rate
+        nn.init.zeros_(self.head[-1].bias)
+
+    def forward(self, present: Tensor, previous: Tensor, past_actions: Tensor, command: Tensor | None = None) -> Tensor:
+        """``present``, ``previous``: xy planes ``[B, C, H, W]`` of the present and the frame
+        before (ego-aligned); ``past_actions`` ``[B, T, 2]`` (present frame, metres per step;
+        the last ``past`` are read); ``command`` int64 ``[B]`` (:mod:`t3fast.data.route`; -1: none
+        for that window) or None (none for any) -> displacements ``[B, steps, 2]``."""
+        b = present.shape[0]
+        if past_actions.shape[1] < self.past:
+            raise ValueError(f"RoutePlanner reads {self.past} past displacements, got {past_actions.shape[1]}")
+        rows, cols = self.window
+        scene = torch.cat([present, present - previous], dim=1)[:, :, rows, cols]
+        onehot = present.new_zeros(b, len(COMMANDS))
+        if command is not None:
+            given = (command >= 0).unsqueeze(1)
+            onehot = F.one_hot(command.long().clamp(min=0), len(COMMANDS)).to(present.dtype) * given
+        recent = past_actions[:, -self.past :]
+        # metres per step / 5: the inputs stay near unit scale up to 10 m/s
+        features = torch.cat([self.scene(scene), recent.flatten(1).to(present.dtype) / 5.0, onehot], dim=1)
+        correction = self.head(features).view(b, self.steps, 2)
+        return constant_turn_rate(recent, self.steps).to(correction.dtype) + correction

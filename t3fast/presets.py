@@ -99,6 +99,8 @@ def _stage2_flow(name: str, **model) -> Stage2Config:
     # the flow term at full weight: at 0.1 the latent loss fell 30 % below the copy forecast's in
     # 250 steps while the flow error fell only from 4.0 to 3.3 cells and validation did not move
     cfg.loss = WorldLossConfig(flow_weight=1.0, static_flow_weight=0.2)
+    if cfg.model.planner == "route":  # it learns on the same windows, in the same step
+        cfg.planner_lr_scale = 1.0
     cfg.train = TrainConfig(steps=2000, batch_size=8, lr=1e-3, warmup_steps=100, log_every=25, eval_every=250,
                             eval_at_start=True, ckpt_every=50, out_dir=f"runs/{name}")
     return cfg
@@ -113,8 +115,10 @@ PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config]] = {
     "ae-small-bev": lambda: _stage1("small-bev", **_SMALL_AE),
     "ae-paper": lambda: _stage1("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
                                 eval_every=2000, ckpt_every=1000),
-    # the tracker's motion corrected by a head that reads the scene, drawn in label space
-    "wm-small": lambda: _stage2_flow("wm-small", tracker_prior=True, motion_context=True, render_agents=True),
+    # the tracker's motion corrected by a head that reads the scene, drawn in label space; the
+    # route planner
+    "wm-small": lambda: _stage2_flow("wm-small", tracker_prior=True, motion_context=True, render_agents=True,
+                                     planner="route"),
     # the papers' Delta forecaster (attention per scale, autoregressive), ego-aligned
     "wm-small-delta": lambda: _stage2_small("wm-small-delta"),
     # the papers' formulation: every frame in its own ego frame

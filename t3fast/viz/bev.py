@@ -7,6 +7,7 @@ forward direction (+x) pointing up and its left (+y) pointing left.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,7 @@ def bev_image(
     trajectory: np.ndarray | None = None,
     scale: int = 2,
     true_trajectory: np.ndarray | None = None,
+    more_paths: Sequence[tuple[np.ndarray, tuple[int, int, int]]] = (),
 ) -> Image.Image:
     """Top-down picture of one frame.
 
@@ -63,7 +65,8 @@ def bev_image(
     coordinates (outlined); mask: optional visibility ``[200, 200, 16]``;
     trajectory: optional ego positions ``[K, 2]`` (drawn as a green polyline from the ego);
     true_trajectory: another one drawn in cyan underneath (e.g. the ground truth next to a
-    plan). The ego (nuScenes footprint) is drawn at the origin.
+    plan); more_paths: further ``(positions [K, 2], RGB colour)`` drawn between the two. The
+    ego (nuScenes footprint) is drawn at the origin.
     """
     rgb = bev_colours(np.asarray(occ), None if mask is None else np.asarray(mask))
     # array [x, y] -> image [row, col] with x up and y left
@@ -75,7 +78,7 @@ def bev_image(
             draw.polygon([tuple(p) for p in corners], outline=BOX_COLOUR)
     ego = np.array([[0, 0, 0, C.EGO_LENGTH, C.EGO_WIDTH, 1.5, 0.0]])
     draw.polygon([tuple(p) for p in _to_pixels(box_corners(ego)[0], scale)], outline=EGO_COLOUR, fill=EGO_COLOUR)
-    for path, colour in ((true_trajectory, TRUE_COLOUR), (trajectory, PLAN_COLOUR)):
+    for path, colour in ((true_trajectory, TRUE_COLOUR), *more_paths, (trajectory, PLAN_COLOUR)):
         if path is not None and len(path):
             pts = _to_pixels(np.concatenate([np.zeros((1, 2)), np.asarray(path, dtype=np.float64)]), scale)
             draw.line([tuple(p) for p in pts], fill=colour, width=max(scale, 1))

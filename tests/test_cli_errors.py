@@ -154,8 +154,8 @@ BAD_HEADS = (lambda s: s["config"]["task"]["model"].update(planner_heads=7),
     ("spoil", "message"),
     [
         WRONG_SHAPE,
-        (lambda s: s["model"].pop("planner.fc.weight"),
-         "weight 'planner.fc.weight' is missing (the config 'task.model' builds it with shape [50, 50])"),
+        (lambda s: s["model"].pop("planner.head.0.weight"),
+         "weight 'planner.head.0.weight' is missing (the config 'task.model' builds it with shape [128, 139])"),
         (lambda s: s["model"].__setitem__("planner.extra", torch.zeros(2)),
          "weight 'planner.extra' is not part of the model its config 'task.model' builds"),
         NO_AUTOENCODER,
@@ -164,8 +164,8 @@ BAD_HEADS = (lambda s: s["config"]["task"]["model"].update(planner_heads=7),
         BAD_HEADS,
         (lambda s: s["config"]["task"]["autoencoder"].update(channels=-8),
          "config 'task.autoencoder': 'channels' must be an integer in [1, 65536], got -8"),
-        (lambda s: s["model"].__setitem__("planner.fc.weight", "a string"),
-         "weight 'planner.fc.weight' is a str, not a tensor"),
+        (lambda s: s["model"].__setitem__("planner.head.0.weight", "a string"),
+         "weight 'planner.head.0.weight' is a str, not a tensor"),
     ],
 )
 def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_eval(tmp_path, capsys, spoil, message):
@@ -196,9 +196,9 @@ def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_eval_ae_and_ex
     assert one_line(capsys) == (f"t3fast eval-ae: {path}: config 'task.model' must be a mapping of "
                                 "AutoencoderConfig fields, got a str")
 
-    path = _spoiled(tmp_path, lambda s: s["model"].__setitem__("planner.fc.weight", "a string"))
+    path = _spoiled(tmp_path, lambda s: s["model"].__setitem__("planner.head.0.weight", "a string"))
     assert main(["export", str(path), str(tmp_path / "out.pt")]) == 1
-    assert one_line(capsys) == f"t3fast export: {path}: weight 'planner.fc.weight' is a str, not a tensor"
+    assert one_line(capsys) == f"t3fast export: {path}: weight 'planner.head.0.weight' is a str, not a tensor"
     assert not (tmp_path / "out.pt").exists()
 
 

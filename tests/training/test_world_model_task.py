@@ -122,8 +122,9 @@ def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "copy_paste", "constant_velocity",
-                            "constant_turn_rate", "warp_const_vel", "warp_gt_ego", "track_const_vel", "track_gt_ego"}
+    assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "t3former_no_command", "copy_paste",
+                            "constant_velocity", "constant_turn_rate", "warp_const_vel", "warp_gt_ego",
+                            "track_const_vel", "track_gt_ego"}
     assert metrics["t3former_gt_ego"]["l2_at"]["3s"] is None  # steered: plans nothing
     keys = {"miou", "miou_moving", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
     assert all(set(m) == keys for m in metrics.values())

@@ -9,16 +9,12 @@ the same poses (``track_gt_ego``), and the ground truth.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import torch
+from window_tool import model_windows_out
 
 from t3fast.data.sample import PRESENT, collate_samples
-from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.baselines import track_gt_ego
 from t3fast.models.ego_motion import planar_poses
-from t3fast.pretrained import load_world_model
 from t3fast.viz.bev import comparison_figure
 
 
@@ -30,15 +26,7 @@ def motion_in_window(sample) -> float:
 
 @torch.no_grad()
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("ckpt")
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--scenes", type=int, default=10)
-    parser.add_argument("--stride", type=int, default=8)
-    args = parser.parse_args()
-    model = load_world_model(args.ckpt).eval()
-    windows = SyntheticDriving(args.split, args.scenes, stride=args.stride)
+    model, windows, out = model_windows_out(__doc__)
     index = max(range(len(windows)), key=lambda i: motion_in_window(windows[i]))
     sample = windows[index]
     batch = collate_samples([sample])
@@ -47,9 +35,8 @@ def main() -> None:
     tracked = track_gt_ego(batch.past_occ, batch.ego_poses)[0]
     rows = [("T3Former", forecast.numpy()), ("tracker", tracked.numpy()), ("truth", sample.future_occ.numpy())]
     figure = comparison_figure(sample.past_occ[-1].numpy(), rows, steps=[1, 3, 5])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.save(args.out, optimize=True)
-    print(f"{sample.scene} from frame {sample.start}: wrote {args.out}")
+    figure.save(out, optimize=True)
+    print(f"{sample.scene} from frame {sample.start}: wrote {out}")
 
 
 if __name__ == "__main__":

@@ -10,18 +10,14 @@ route command (orange) and with it (green), the 3 s errors in the caption.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
 import torch
 from PIL import Image, ImageDraw
+from window_tool import model_windows_out
 
 from t3fast.data.route import COMMANDS, STRAIGHT
 from t3fast.data.sample import PRESENT, collate_samples
-from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models.planner import constant_turn_rate
-from t3fast.pretrained import load_world_model
 from t3fast.viz.bev import bev_image, sample_frame_boxes
 
 CTR_COLOUR, NO_COMMAND_COLOUR = (255, 60, 60), (255, 160, 0)
@@ -60,15 +56,8 @@ def panel(model, sample, title: str) -> Image.Image:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("ckpt")
-    parser.add_argument("out", type=Path)
-    parser.add_argument("--split", default="test")
-    parser.add_argument("--scenes", type=int, default=10)
-    parser.add_argument("--stride", type=int, default=8)
-    args = parser.parse_args()
-    model = load_world_model(args.ckpt).eval()
-    windows = [w for w in SyntheticDriving(args.split, args.scenes, stride=args.stride)]
+    model, split, out = model_windows_out(__doc__)
+    windows = list(split)
     turns = [w for w in windows if int(w.command) != STRAIGHT]
     straight = [w for w in windows if int(w.command) == STRAIGHT]
     panels = []
@@ -80,9 +69,8 @@ def main() -> None:
     for p in panels:
         canvas.paste(p, (x, 0))
         x += p.width + 4
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    canvas.save(args.out, optimize=True)
-    print(f"wrote {args.out}")
+    canvas.save(out, optimize=True)
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -85,7 +85,11 @@ def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], ga
     """Per present component, its velocity in cells per step ``[n, 2]``: the displacement of its
     centroid from the nearest previous component of its class (both in the present frame,
     :func:`match_components`); 0 without one within ``gate_cells``."""
-    match = match_components(present, previous, gate_cells)
+    return _matched_steps(present, previous, match_components(present, previous, gate_cells))
+
+
+def _matched_steps(present: dict[str, Tensor], previous: dict[str, Tensor], match: Tensor) -> Tensor:
+    """:func:`agent_velocities` for a given ``match`` (:func:`match_components`)."""
     velocity = torch.zeros(match.shape[0], 2, dtype=torch.float64, device=match.device)
     found = match >= 0
     velocity[found] = present["centroid"][found] - previous["centroid"][match[found]]
@@ -136,8 +140,8 @@ def chained_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], 
     :func:`match_components`); where the chain breaks, the last step's velocity
     (:func:`agent_velocities`). Following the chain, rather than matching the present against
     the older frame directly, keeps a queued car from taking the place of the one ahead."""
-    velocity = agent_velocities(present, previous, gate_cells)
     match = match_components(present, previous, gate_cells)
+    velocity = _matched_steps(present, previous, match)
     back = torch.full_like(match, -1)
     found = match >= 0
     back[found] = match_components(previous, older, gate_cells)[match[found]]

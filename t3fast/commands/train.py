@@ -1,4 +1,4 @@
-"""``t3fast train-ae`` and ``t3fast train-wm``."""
+"""``t3fast train-ae``, ``t3fast train-wm`` and ``t3fast train-planner``."""
 
 from __future__ import annotations
 
@@ -23,6 +23,13 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(world)
     world.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=100 loss.rollout_steps=6")
     world.set_defaults(func=_train_wm)
+
+    plan = sub.add_parser("train-planner", help="retrain a world model's route planner on its own, on many windows")
+    plan.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
+    plan.add_argument("--wm", help="the world model whose planner is retrained (overrides world_model)")
+    _add_run_flags(plan)
+    plan.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
+    plan.set_defaults(func=_train_planner)
 
 
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
@@ -54,7 +61,7 @@ def _config(cls, stage: str, name: str, overrides: list[str]):
 def _overrides(args: argparse.Namespace) -> list[str]:
     """The dotted overrides plus those the shared flags stand for."""
     overrides = list(args.overrides)
-    if args.data:
+    if getattr(args, "data", None):
         overrides.append(f"data.source={args.data}")
     if args.resume:
         overrides.append("train.resume=true")
@@ -99,3 +106,12 @@ def _train_wm(args: argparse.Namespace) -> int:
     overrides = _overrides(args) + ([f"autoencoder_ckpt={args.ae}"] if args.ae else [])
     task = WorldModelTask(_config(Stage2Config, "wm", args.config, overrides))
     return _fit(task, task.cfg, ("encoder", "forecaster", "planner", "decoder"), f"world model {args.config}")
+
+
+def _train_planner(args: argparse.Namespace) -> int:
+    from t3fast.training.configs import PlannerConfig
+    from t3fast.training.planner.task import PlannerTask
+
+    overrides = _overrides(args) + ([f"world_model={args.wm}"] if args.wm else [])
+    task = PlannerTask(_config(PlannerConfig, "plan", args.config, overrides))
+    return _fit(task, task.cfg, ("planner",), f"route planner {args.config}")

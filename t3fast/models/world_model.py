@@ -373,10 +373,11 @@ class T3Former(nn.Module):
         return futures, deltas, actions, motion
 
     def forward(
-        self, past: Triplane, past_actions: Tensor, steps: int = 6, first_step: int = 0,
+        self, past: Triplane | None, past_actions: Tensor | None, steps: int = 6, first_step: int = 0,
         points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
         plan_from: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
-    ) -> tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]:
+    ) -> (tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]
+          | Tensor):
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
 
@@ -388,7 +389,15 @@ class T3Former(nn.Module):
         ``plan_from`` (present and previous xy planes, past displacements, commands: see
         :class:`~t3fast.models.route_planner.RoutePlanner`; they may be other windows than the
         forecaster's), else None. ``velocity``: as for :meth:`rollout`.
+
+        With ``past`` None, only the route planner's displacements for ``plan_from`` (the planner
+        trained on its own, :mod:`t3fast.training.planner`).
         """
+        if past is None:
+            if plan_from is None or not self.reads_command:
+                raise ValueError("without past planes the forward pass is the route planner's alone: it needs "
+                                 "plan_from and world_config.planner = 'route'")
+            return self.planner(*plan_from)
         if motion:
             if not isinstance(self.forecaster, FlowTriplaneForecaster):
                 raise ValueError("motion=True needs the flow forecaster (world_config.forecaster = 'flow')")

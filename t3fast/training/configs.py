@@ -195,3 +195,32 @@ class Stage2Config:
 
     def __post_init__(self) -> None:
         _weights("", self, ("decoder_lr_scale", "planner_lr_scale"), "0 freezes that part")
+
+
+@dataclass
+class PlanDataConfig:
+    """The windows the route planner trains and is selected on (synthetic; its own cache)."""
+
+    train_scenes: int = 300
+    val_scenes: int = 40  # the planner is selected on these (the mean of their windows' L2)
+    stride: int = 2  # frames between consecutive windows, in both splits
+    frames_per_scene: int = 40
+    cache_dir: str = "runs/cache"
+
+    def __post_init__(self) -> None:
+        _at_least("data.", self, {"train_scenes": 1, "val_scenes": 1, "stride": 1})
+
+
+@dataclass
+class PlannerConfig:
+    """Everything ``t3fast train-planner`` needs: the route planner of a trained world model
+    retrained on its own, on many windows; the rest of the world model stays as it is."""
+
+    world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (model.planner must be "route")
+    command_dropout: float = 0.3  # share of training windows planned without the route command
+    data: PlanDataConfig = field(default_factory=PlanDataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.command_dropout, int | float) and 0 <= self.command_dropout <= 1):
+            raise ConfigError(f"command_dropout must be a share in [0, 1], got {self.command_dropout!r}")

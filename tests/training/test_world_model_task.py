@@ -26,14 +26,7 @@ from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_windo
 from t3fast.viz.viewer import read_viewer_data
 
 from ..models.test_world_model import tiny_world_model
-
-TINY_AE = ["data.train_scenes=1", "data.frames_per_scene=11", "data.val_scenes=1", "data.val_stride=11",
-           "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100", "train.eval_every=0"]
-TINY_WM = ["model.forecaster_widths=[8,8,8]", "model.scales=3", "model.max_tokens=64", "model.flow_widths=[8,8,8]",
-           "model.planner_widths=[8,8,8,8]",
-           "model.d_act=20", "data.train_scenes=1", "data.frames_per_scene=12", "data.val_scenes=1",
-           "data.val_windows=1", "loss.num_occupied=500", "loss.num_near_free=200", "loss.num_far_free=100",
-           "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1", "train.batch_size=1"]
+from .tiny_runs import TINY_AE, TINY_WM
 
 
 def shifting_sequence(frames: int = 11, grid=(16, 12, 4)) -> torch.Tensor:
@@ -65,20 +58,6 @@ def test_tiny_world_model_fits_a_moving_box():
     assert parts["triplane"] < 0.35 * first["triplane"]
     assert parts["occupancy"] < 0.05 * first["occupancy"]
     assert parts["action"] < 0.01 * first["action"]
-
-
-@pytest.fixture(scope="module")
-def world_ckpt(tmp_path_factory):
-    root = tmp_path_factory.mktemp("stage2")
-    assert main(["train-ae", "--config", "small", "train.steps=1", f"train.out_dir={root / 'ae'}", *TINY_AE]) == 0
-    out = root / "wm"
-    args = ["train-wm", "--config", "small", "--ae", str(root / "ae" / "last.pt"), f"data.cache_dir={root / 'cache'}",
-            f"train.out_dir={out}", *TINY_WM]
-    assert main([*args, "train.steps=1"]) == 0
-    assert main([*args, "train.steps=2", "--resume"]) == 0  # resumes from step 1
-    assert load_checkpoint(out / "last.pt")["step"] == 2
-    assert load_world_model(out / "last.pt").world_config.ego_aligned
-    return out / "last.pt"
 
 
 def test_own_frames_preset_encodes_frames_once(world_ckpt, tmp_path):

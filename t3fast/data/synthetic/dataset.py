@@ -154,7 +154,7 @@ class SyntheticDriving(Dataset):
     ):
         self.scenes = SyntheticScenes(split, num_scenes, frames_per_scene)
         self.starts = window_starts(frames_per_scene, stride)
-        self.flip = flip
+        self.stride, self.flip = stride, flip
 
     def __len__(self) -> int:
         return len(self.scenes) * len(self.starts)

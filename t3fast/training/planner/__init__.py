@@ -1,0 +1,1 @@
+"""Training the route planner on its own, on many cached windows."""

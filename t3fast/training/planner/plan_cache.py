@@ -1,0 +1,141 @@
+"""What the route planner reads, for many windows, kept on disk: the planner trained on its own.
+
+The route planner (:class:`~t3fast.models.route_planner.RoutePlanner`) reads only the present
+xy plane, the previous frame's (moved into the present ego frame) and the past displacements:
+two encodings per window instead of the eleven of the forecaster's cache
+(:mod:`t3fast.training.world_model.latent_cache`), so it can learn from many more scenes at the
+same cost. The frames are encoded as at inference (:meth:`T3Former.encode_history`). One
+file per scene (float16 planes, about 0.3 MB a window with the small autoencoder), written
+atomically; building is resumable and shows progress. The folder's name hashes the encoder's
+weights and the split's first scene, so a new autoencoder or a changed world builds a new
+cache.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from t3fast.data.route import route_command
+from t3fast.data.sample import PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.models.ego_motion import planar_poses
+from t3fast.models.world_model import T3Former
+from t3fast.training.triplane_cache import encoder_digest
+from t3fast.training.world_model.latent_cache import world_digest
+
+PLAN_CACHE_FORMAT = 1
+ENCODE_WINDOWS = 8  # windows (two frames each) per encoder call
+
+
+@dataclass
+class PlanWindows:
+    """Planner inputs and targets: ``present``, ``previous`` xy planes ``[B, C, H, W]`` (the
+    previous frame in the present ego frame), ``past_actions`` ``[B, 4, 2]``, the true
+    ``future_actions`` ``[B, 6, 2]`` and the route ``command`` ``[B]`` (int64; -1: none)."""
+
+    present: Tensor
+    previous: Tensor
+    past_actions: Tensor
+    future_actions: Tensor
+    command: Tensor
+
+    def to(self, device: torch.device | str) -> PlanWindows:
+        return PlanWindows(*(t.to(device) for t in (self.present, self.previous, self.past_actions,
+                                                      self.future_actions, self.command)))
+
+    def inputs(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The planner's arguments (:meth:`RoutePlanner.forward`)."""
+        return self.present, self.previous, self.past_actions, self.command
+
+
+class PlanCache(Dataset):
+    """The windows of a :class:`SyntheticDriving` split as the route planner reads them.
+
+    Args:
+        windows: the windows (``flip=False``; mirroring happens per batch).
+        model: an ego-aligned :class:`T3Former` whose frozen encoder encodes the frames.
+        cache_dir: parent folder; the cache is ``cache_dir/plan-<encoder>-<world>-<split>-...``.
+    """
+
+    def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
+        if windows.flip:
+            raise ValueError("PlanCache stores windows as generated: pass flip=False")
+        if not model.ego_aligned:
+            raise ValueError("the route planner reads ego-aligned planes: the model needs ego_aligned=True")
+        self.windows, self.model = windows, model
+        scenes = windows.scenes
+        key = (f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f"
+               f"-stride{windows.stride}-v{PLAN_CACHE_FORMAT}")
+        self.root = Path(cache_dir) / f"plan-{key}"
+        self._by_scene: dict[int, list[int]] = {}
+        for index in range(len(windows)):
+            self._by_scene.setdefault(windows.locate(index)[0], []).append(index)
+        self._data: dict[str, Tensor] | None = None
+
+    def path(self, scene: int) -> Path:
+        return self.root / f"scene{scene:05d}.pt"
+
+    def missing(self) -> list[int]:
+        """Scenes not yet in the cache."""
+        return [s for s in self._by_scene if not self.path(s).is_file()]
+
+    @torch.no_grad()
+    def build(self, progress: bool = True) -> int:
+        """Encode every scene not yet cached; returns how many were encoded."""
+        todo = self.missing()
+        device = next(self.model.parameters()).device
+        for scene in tqdm(todo, desc="encode planner windows", unit="scene", disable=not progress or not todo):
+            samples = [self.windows[i] for i in self._by_scene[scene]]
+            occ = torch.stack([s.occ[PRESENT - 1 : PRESENT + 1] for s in samples]).to(device)
+            poses = torch.stack([planar_poses(s.ego_poses[None], PRESENT)[0, PRESENT - 1 : PRESENT + 1]
+                                 for s in samples]).to(device)
+            chunks = range(0, len(samples), ENCODE_WINDOWS)
+            xy = torch.cat([self.model.encode_history(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
+                            for i in chunks])
+            save_checkpoint(
+                {
+                    "xy": xy.half().cpu(),  # [W, 2 (previous, present), C, H, W]
+                    "past_actions": torch.stack([s.past_actions for s in samples]),
+                    "future_actions": torch.stack([s.future_actions for s in samples]),
+                },
+                self.path(scene),
+            )
+        return len(todo)
+
+    def _load(self) -> dict[str, Tensor]:
+        if self._data is None:
+            missing = self.missing()
+            if missing:
+                raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
+            parts = [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
+            self._data = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+        return self._data
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, index: int) -> tuple[Tensor, Tensor, Tensor]:
+        """(xy planes float16 ``[2, C, H, W]`` (previous, present), past ``[4, 2]``, future ``[6, 2]``)."""
+        data = self._load()
+        return data["xy"][index], data["past_actions"][index], data["future_actions"][index]
+
+    def all(self) -> PlanWindows:
+        """Every window at once, as the planner reads them, with the command derived from the
+        future (:func:`~t3fast.data.route.route_command`)."""
+        data = self._load()
+        return collate_plan([(data["xy"][i], data["past_actions"][i], data["future_actions"][i])
+                             for i in range(len(self))])
+
+
+def collate_plan(items: list[tuple[Tensor, Tensor, Tensor]]) -> PlanWindows:
+    """Stack cached windows (planes back to float32) with their route commands."""
+    xy = torch.stack([x for x, _, _ in items]).float()
+    future = torch.stack([f for _, _, f in items])
+    return PlanWindows(xy[:, 1], xy[:, 0], torch.stack([p for _, p, _ in items]), future, route_command(future))

@@ -1,0 +1,133 @@
+"""The route planner's own :class:`~t3fast.training.task.Task`: a trained world model whose
+route planner learns on many cached windows (:mod:`t3fast.training.planner.plan_cache`) while
+everything else stays frozen.
+
+Trained alongside the forecaster, on its 30 scenes, the planner overfit them: its plans got
+worse on validation within 250 steps. Here it reads 10x the scenes for the cost of two
+encodings a window. Its checkpoints are the whole world model's (the frozen parts included),
+so ``t3fast eval`` and ``t3fast export`` take them as they take a ``train-wm`` checkpoint;
+``best.pt`` follows the planned positions' mean error on the validation windows, with and
+without the route command (see :meth:`PlannerTask.evaluate`).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import Tensor, nn
+
+from t3fast.data.route import mirror_command
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.errors import ConfigError
+from t3fast.evaluation.planning import HORIZONS
+from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
+from t3fast.models.planner import constant_turn_rate
+from t3fast.models.world_model import T3Former
+from t3fast.pretrained import resolve, world_model_from_checkpoint
+from t3fast.training.configs import PlannerConfig
+from t3fast.training.distributed import barrier, is_main
+from t3fast.training.planner.plan_cache import PlanCache, PlanWindows, collate_plan
+
+
+def mirror_left_right(batch: PlanWindows) -> PlanWindows:
+    """The windows mirrored across the ego's x axis: planes flipped along y, y displacements
+    negated, left and right turns swapped (the command follows the mirrored future)."""
+    def flip_y(actions: Tensor) -> Tensor:
+        return actions * actions.new_tensor([1.0, -1.0])
+
+    return PlanWindows(batch.present.flip(-1), batch.previous.flip(-1), flip_y(batch.past_actions),
+                       flip_y(batch.future_actions), mirror_command(batch.command))
+
+
+def position_errors(actions: Tensor, future_actions: Tensor) -> Tensor:
+    """Distance (metres) between planned and true positions ``[B, S]`` from displacements
+    ``[B, S, 2]``."""
+    return (actions.cumsum(1) - future_actions.cumsum(1)).norm(dim=-1)
+
+
+def plan_summary(errors: Tensor) -> dict[str, float]:
+    """L2 at 3 s and mean-L2 (mean over the steps up to 1, 2, 3 s, averaged; as
+    :class:`~t3fast.evaluation.planning.PlanningMetrics`) of position errors ``[N, S]``."""
+    last = HORIZONS["3s"]
+    mean = sum(float(errors[:, :step].mean()) for step in HORIZONS.values()) / len(HORIZONS)
+    return {"l2_3s": float(errors[:, last - 1].mean()), "l2_mean": mean}
+
+
+class PlannerTask:
+    """Trains the route planner of ``cfg.world_model`` alone (see the module doc)."""
+
+    def __init__(self, cfg: PlannerConfig):
+        self.cfg = copy.deepcopy(cfg)
+        self._state = read_checkpoint(resolve(self.cfg.world_model), WORLD_MODEL)
+        planner = self._state["config"]["task"].get("model", {}).get("planner")
+        if planner != "route":
+            raise ConfigError(f"world_model {self.cfg.world_model!r} has planner {planner!r}; train-planner trains a "
+                              "route planner (model.planner = 'route')")
+        self._model: T3Former | None = None
+        self._val: PlanWindows | None = None
+        self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
+
+    def build_model(self) -> nn.Module:
+        model = world_model_from_checkpoint(self._state, self.cfg.world_model)
+        model.requires_grad_(False)
+        model.planner.requires_grad_(True)
+        self._model = model
+        return model
+
+    def _cache(self, split: str, scenes: int) -> PlanCache:
+        if self._model is None:
+            raise RuntimeError("build_model() must run before the planner's windows are read")
+        data = self.cfg.data
+        windows = SyntheticDriving(split, scenes, data.frames_per_scene, stride=data.stride)
+        cache = PlanCache(windows, self._model, data.cache_dir)
+        if is_main():
+            cache.build()
+        barrier()
+        return cache
+
+    def train_dataset(self) -> PlanCache:
+        return self._cache("train", self.cfg.data.train_scenes)
+
+    def collate(self, items: list) -> PlanWindows:
+        return collate_plan(items)
+
+    def samples_in(self, batch: PlanWindows) -> int:
+        return batch.present.shape[0]
+
+    def training_step(self, model: nn.Module, batch: PlanWindows) -> tuple[Tensor, dict[str, float]]:
+        if bool(torch.rand((), generator=self._generator) < 0.5):
+            batch = mirror_left_right(batch)
+        dropped = torch.rand(batch.command.shape, generator=self._generator) < self.cfg.command_dropout
+        command = torch.where(dropped.to(batch.command.device), torch.full_like(batch.command, -1), batch.command)
+        planned = model(None, None, plan_from=(batch.present, batch.previous, batch.past_actions, command))
+        errors = position_errors(planned, batch.future_actions)
+        loss = errors.mean()
+        base = position_errors(constant_turn_rate(batch.past_actions, planned.shape[1]), batch.future_actions)
+        return loss, {"plan_l2": loss.item(), "ctr_l2": base.mean().item()}
+
+    def evaluate(self, model: nn.Module) -> dict[str, float]:
+        """On every validation window: L2 at 3 s and mean-L2 of the plans with and without the
+        route command and of constant turn rate; ``score`` is minus the mean of the two mean-L2s
+        (the planner must plan well with and without a command)."""
+        if self._val is None:
+            self._val = self._cache("val", self.cfg.data.val_scenes).all()
+        device = next(model.parameters()).device
+        val = self._val.to(device)
+        steps = val.future_actions.shape[1]
+        values: dict[str, float] = {}
+        for name, command in (("command", val.command), ("no_command", None)):
+            planned = model.planner(val.present, val.previous, val.past_actions, command)
+            summary = plan_summary(position_errors(planned, val.future_actions))
+            values.update({f"{name}_{k}": v for k, v in summary.items()})
+        ctr = plan_summary(position_errors(constant_turn_rate(val.past_actions, steps), val.future_actions))
+        values.update({f"ctr_{k}": v for k, v in ctr.items()})
+        for name in ("command", "no_command"):
+            for k in ("l2_3s", "l2_mean"):
+                values[f"{name}_{k}_ratio"] = values[f"{name}_{k}"] / ctr[k]
+        values["score"] = -(values["command_l2_mean"] + values["no_command_l2_mean"]) / 2
+        return values
+
+    def config_dict(self) -> dict:
+        """The world model's own config: the checkpoints are world-model checkpoints."""
+        return copy.deepcopy(self._state["config"]["task"])

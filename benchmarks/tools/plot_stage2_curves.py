@@ -8,23 +8,17 @@ on the same windows as flat lines. Right: the same for the moving classes' mIoU.
 
 from __future__ import annotations
 
-import json
-import sys
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
+from curves import label_panel, read_events, run
 
 BASELINES = {"warp_gt_ego": "warp, true poses", "track_gt_ego": "tracker, true poses",
              "warp_const_vel": "warp, const. velocity", "track_const_vel": "tracker, const. velocity"}
 
 
 def main(metrics: Path, out: Path) -> None:
-    records = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
-    train = [r for r in records if r["event"] == "train"]
-    evals = [r for r in records if r["event"] == "eval"]
+    train, evals = read_events(metrics)
     fig, (left, *panels) = plt.subplots(1, 3, figsize=(17, 4.5))
     steps = [r["step"] for r in train]
     left.plot(steps, [r["values"]["latent"] for r in train], label="latent loss")
@@ -49,15 +43,10 @@ def main(metrics: Path, out: Path) -> None:
         for (key, name), colour in zip(BASELINES.items(), ("tab:green", "tab:red", "tab:purple", "tab:brown")):
             if f"{key}_miou{suffix}_avg" in first:
                 panel.axhline(first[f"{key}_miou{suffix}_avg"], ls="--", color=colour, label=name)
-        panel.set_xlabel("step")
-        panel.set_ylabel(f"{what} (val)")
-        panel.legend(fontsize=8)
-        panel.set_title(f"validation: {what}")
+        label_panel(panel, f"{what} (val)", f"validation: {what}")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        raise SystemExit(__doc__.splitlines()[0])
-    main(Path(sys.argv[1]), Path(sys.argv[2]))
+    run(main, __doc__)

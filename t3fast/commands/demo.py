@@ -1,9 +1,9 @@
 """``t3fast demo``: the world model on held-out synthetic scenes, end to end.
 
-Loads the world models shipped in ``t3fast/checkpoints`` (T3Former and those of its ablations
-that are shipped, trained on synthetic data by the commands in the README) or the ones in
-``--ckpt-dir``,
-evaluates them and the baselines on held-out synthetic test scenes, and writes into the
+Loads the world model shipped in ``t3fast/checkpoints`` (T3Former, trained on synthetic data by
+the commands in the README; with ``--ablations`` also the shipped ablations) or the ones in
+``--ckpt-dir``, evaluates them and the baselines on held-out synthetic test scenes, and writes
+into the
 output folder ``metrics.json``, ``metrics.md`` and, for a few test windows, pictures of
 past / predicted / ground-truth BEV frames with planned vs true trajectory (PNG and GIF) and
 in 3D (HTML), for the first one also the forecast steered to a stop, and ``index.html`` with
@@ -33,16 +33,20 @@ def add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--scenes", type=positive_int, default=10, help="held-out synthetic test scenes")
     demo.add_argument("--stride", type=positive_int, default=8, help="frames between evaluated windows of a scene")
     demo.add_argument("--pictures", type=non_negative_int, default=3, help="test windows drawn as PNG and GIF")
+    # the four ablations take three quarters of the demo's time on a 2-core CPU
+    demo.add_argument("--ablations", action="store_true",
+                      help="also the shipped ablations (wm-small-*.pt), each a row of the same table")
     demo.set_defaults(func=_demo)
 
 
-def checkpoint_paths(folder: Path) -> list[Path]:
+def checkpoint_paths(folder: Path, ablations: bool = True) -> list[Path]:
     """The demo's checkpoints in ``folder`` (the world-model presets found there, see
-    :func:`t3fast.presets.shipped_world_models`): ``wm-small.pt`` first, then the ablations."""
+    :func:`t3fast.presets.shipped_world_models`): ``wm-small.pt`` first, then (``ablations``)
+    the ablations."""
     paths = shipped_world_models(folder)
     if not paths or paths[0].name != "wm-small.pt":
         raise UsageError(f"{folder / 'wm-small.pt'} not found (train it with `t3fast train-wm --config small`)")
-    return paths
+    return paths if ablations else paths[:1]
 
 
 def save_pictures(model, dataset, indices: list[int], out: Path) -> list[Path]:
@@ -76,7 +80,7 @@ def _demo(args: argparse.Namespace) -> int:
     output_dir(args.out)  # before any model runs
     start = time.perf_counter()
     device = default_device()
-    models = load_models(checkpoint_paths(args.ckpt_dir), device)
+    models = load_models(checkpoint_paths(args.ckpt_dir, args.ablations), device)
     print(f"models: {', '.join(models)} ({device})")
     dataset = SyntheticDriving("test", args.scenes, stride=args.stride)
     results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device)

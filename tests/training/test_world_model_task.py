@@ -10,6 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
+from t3fast.commands.demo import checkpoint_paths
 from t3fast.commands.main import main
 from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
@@ -289,3 +290,10 @@ def test_rows_of_one_model_share_one_forecast_per_window(world_ckpt, monkeypatch
                              dataset, progress=False)
     assert len(passes) == len(dataset) == 2
     assert together == separate
+
+
+def test_demo_shows_the_ablations_only_when_asked(tmp_path):
+    for name in ("wm-small-bev", "wm-small", "unrelated"):
+        (tmp_path / f"{name}.pt").touch()
+    assert checkpoint_paths(tmp_path, ablations=False) == [tmp_path / "wm-small.pt"]
+    assert checkpoint_paths(tmp_path) == [tmp_path / "wm-small.pt", tmp_path / "wm-small-bev.pt"]

@@ -134,6 +134,9 @@ class WorldModelConfig:
     # "phi_act": the papers' MotionPlanner (reads the forecast triplanes); "route": RoutePlanner
     # (the road ahead in the present plane, the past motion and the route command)
     planner: str = "phi_act"
+    # the route planner reads the road ahead (a CNN over the present plane and its change); False:
+    # the past motion and the route command only
+    route_scene: bool = True
     planner_widths: list[int] = field(default_factory=lambda: [64, 128, 256, 512])  # ResNet-18
     d_act: int = 50
     planner_heads: int = 5

@@ -49,23 +49,28 @@ class RoutePlanner(nn.Module):
         plane_shape: the xy plane's ``(H, W)``.
         steps: future steps planned.
         past: past displacements read.
+        scene: read the road ahead; False: the past displacements and the command only (the
+            planes are accepted and not read).
     """
 
     reads_command = True
 
-    def __init__(self, channels: int, plane_shape: tuple[int, int], steps: int = 6, past: int = 4):
+    def __init__(self, channels: int, plane_shape: tuple[int, int], steps: int = 6, past: int = 4,
+                 scene: bool = True):
         super().__init__()
         self.steps, self.past = steps, past
         self.window = ahead_window(plane_shape)
-        layers: list[nn.Module] = []
-        cin = 2 * channels
-        for width in ROUTE_WIDTHS:
-            layers += [nn.Conv2d(cin, width, 3, stride=2, padding=1), group_norm(width), nn.SiLU()]
-            cin = width
-        self.scene = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten(), nn.Linear(16 * cin, ROUTE_HIDDEN),
-                                   nn.SiLU())
+        self.scene: nn.Module | None = None
+        if scene:
+            layers: list[nn.Module] = []
+            cin = 2 * channels
+            for width in ROUTE_WIDTHS:
+                layers += [nn.Conv2d(cin, width, 3, stride=2, padding=1), group_norm(width), nn.SiLU()]
+                cin = width
+            self.scene = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten(),
+                                       nn.Linear(16 * cin, ROUTE_HIDDEN), nn.SiLU())
         self.head = nn.Sequential(
-            nn.Linear(ROUTE_HIDDEN + 2 * past + len(COMMANDS), ROUTE_HIDDEN), nn.SiLU(),
+            nn.Linear((ROUTE_HIDDEN if scene else 0) + 2 * past + len(COMMANDS), ROUTE_HIDDEN), nn.SiLU(),
             nn.Linear(ROUTE_HIDDEN, ROUTE_HIDDEN), nn.SiLU(),
             nn.Linear(ROUTE_HIDDEN, 2 * steps),
         )
@@ -80,14 +85,15 @@ class RoutePlanner(nn.Module):
         b = present.shape[0]
         if past_actions.shape[1] < self.past:
             raise ValueError(f"RoutePlanner reads {self.past} past displacements, got {past_actions.shape[1]}")
-        rows, cols = self.window
-        scene = torch.cat([present, present - previous], dim=1)[:, :, rows, cols]
         onehot = present.new_zeros(b, len(COMMANDS))
         if command is not None:
             given = (command >= 0).unsqueeze(1)
             onehot = F.one_hot(command.long().clamp(min=0), len(COMMANDS)).to(present.dtype) * given
         recent = past_actions[:, -self.past :]
         # metres per step / 5: the inputs stay near unit scale up to 10 m/s
-        features = torch.cat([self.scene(scene), recent.flatten(1).to(present.dtype) / 5.0, onehot], dim=1)
-        correction = self.head(features).view(b, self.steps, 2)
+        features = [recent.flatten(1).to(present.dtype) / 5.0, onehot]
+        if self.scene is not None:
+            rows, cols = self.window
+            features.insert(0, self.scene(torch.cat([present, present - previous], dim=1)[:, :, rows, cols]))
+        correction = self.head(torch.cat(features, dim=1)).view(b, self.steps, 2)
         return constant_turn_rate(recent, self.steps).to(correction.dtype) + correction

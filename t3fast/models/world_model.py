@@ -240,6 +240,7 @@ class T3Former(nn.Module):
             plane_shape=autoencoder.plane_shape[:2],
             steps=world.steps,
             past=world.past_actions,
+            scene=world.route_scene,
         ) if world.planner == "route" else MotionPlanner(
             channels=autoencoder.channels,
             widths=world.planner_widths,

@@ -214,9 +214,10 @@ class PlanDataConfig:
 @dataclass
 class PlannerConfig:
     """Everything ``t3fast train-planner`` needs: the route planner of a trained world model
-    retrained on its own, on many windows; the rest of the world model stays as it is."""
+    trained anew on its own, on many windows; the rest of the world model stays as it is."""
 
     world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (model.planner must be "route")
+    scene: bool = True  # the planner reads the road ahead (model.route_scene of the world model it goes into)
     command_dropout: float = 0.3  # share of training windows planned without the route command
     data: PlanDataConfig = field(default_factory=PlanDataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)

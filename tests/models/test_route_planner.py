@@ -75,7 +75,7 @@ def test_route_planner_learns_what_the_command_says():
         opt.zero_grad()
         loss.backward()
         opt.step()
-    assert float(loss) < 0.3 * start, (start, float(loss))
+    assert loss.item() < 0.3 * start, (start, loss.item())
 
 
 def test_route_planner_config_and_the_world_models_command_checks():

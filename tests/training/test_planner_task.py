@@ -112,7 +112,8 @@ def test_train_planner_retrains_only_the_planner_and_its_checkpoints_are_world_m
     assert load_checkpoint(out / "last.pt")["step"] == 3
     events = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     evals = [e for e in events if e["event"] == "eval"]
-    assert [e["step"] for e in evals] == [0, 2, 3]  # the world model's own planner first
+    assert [e["step"] for e in evals] == [0, 2, 3]
+    assert evals[0]["values"]["command_l2_mean_ratio"] == pytest.approx(1.0)  # a new planner: constant turn rate
     assert {"no_command_l2_3s", "ctr_l2_mean", "command_l2_mean_ratio", "score"} <= set(evals[-1]["values"])
     before, after = load_world_model(world_ckpt).state_dict(), load_world_model(out / "last.pt").state_dict()
     changed = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
@@ -133,3 +134,15 @@ def test_train_planner_refuses_a_world_model_without_a_route_planner(world_ckpt,
 def test_command_dropout_outside_a_share_is_refused():
     with pytest.raises(ConfigError, match="command_dropout"):
         PlannerConfig(command_dropout=1.5)
+
+
+def test_a_planner_without_the_scene_reads_only_the_past_motion_and_the_command(world_ckpt, tmp_path):
+    cfg = PlannerConfig(world_model=str(world_ckpt), scene=False)
+    model = PlannerTask(cfg).build_model()
+    assert model.planner.scene is None and model.world_config.route_scene is False
+    torch.nn.init.normal_(model.planner.head[-1].weight)
+    batch = _windows(n=3)
+    other = PlanWindows(torch.randn_like(batch.present), torch.randn_like(batch.previous), batch.past_actions,
+                        batch.future_actions, batch.command)
+    torch.testing.assert_close(model.planner(*batch.inputs()), model.planner(*other.inputs()))
+    assert not torch.allclose(model.planner(*batch.inputs()), model.planner(*batch.inputs()[:3], None))

@@ -1,6 +1,6 @@
 """The route planner's own :class:`~t3fast.training.task.Task`: a trained world model whose
-route planner learns on many cached windows (:mod:`t3fast.training.planner.plan_cache`) while
-everything else stays frozen.
+route planner is trained anew on many cached windows (:mod:`t3fast.training.planner.plan_cache`)
+while everything else stays frozen.
 
 Trained alongside the forecaster, on its 30 scenes, the planner overfit them: its plans got
 worse on validation within 250 steps. Here it reads 10x the scenes for the cost of two
@@ -22,7 +22,10 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
+from t3fast.io.config import load_config
+from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.planner import constant_turn_rate
+from t3fast.models.route_planner import RoutePlanner
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import PlannerConfig
@@ -69,7 +72,16 @@ class PlannerTask:
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
 
     def build_model(self) -> nn.Module:
-        model = world_model_from_checkpoint(self._state, self.cfg.world_model)
+        """The world model with a new route planner (constant turn rate: its last layer is zero)
+        of ``cfg.scene``; every other weight from ``cfg.world_model``."""
+        task = self.config_dict()
+        autoencoder = load_config(AutoencoderConfig, task["autoencoder"])
+        world = load_config(WorldModelConfig, task["model"])
+        fresh = RoutePlanner(autoencoder.channels, autoencoder.plane_shape[:2], world.steps, world.past_actions,
+                             scene=world.route_scene)
+        weights = {k: v for k, v in self._state["model"].items() if not k.startswith("planner.")}
+        weights.update({f"planner.{k}": v for k, v in fresh.state_dict().items()})
+        model = world_model_from_checkpoint({"model": weights, "config": {"task": task}}, self.cfg.world_model)
         model.requires_grad_(False)
         model.planner.requires_grad_(True)
         self._model = model
@@ -129,5 +141,8 @@ class PlannerTask:
         return values
 
     def config_dict(self) -> dict:
-        """The world model's own config: the checkpoints are world-model checkpoints."""
-        return copy.deepcopy(self._state["config"]["task"])
+        """The world model's own config with the planner's (the checkpoints are world-model
+        checkpoints)."""
+        task = copy.deepcopy(self._state["config"]["task"])
+        task["model"]["route_scene"] = self.cfg.scene
+        return task

@@ -137,6 +137,7 @@ class WorldModelConfig:
     # the route planner reads the road ahead (a CNN over the present plane and its change); False:
     # the past motion and the route command only
     route_scene: bool = True
+    route_modes: int = 1  # candidate plans of the route planner (the best-scored one is the plan)
     planner_widths: list[int] = field(default_factory=lambda: [64, 128, 256, 512])  # ResNet-18
     d_act: int = 50
     planner_heads: int = 5
@@ -158,6 +159,7 @@ class WorldModelConfig:
         if self.planner == "route" and not self.ego_aligned:
             raise ConfigError("'planner'='route' reads the road ahead in the ego-aligned present plane: it needs "
                               "ego_aligned=true")
+        check_int("route_modes", self.route_modes, 1, 16)
         check_ints("flow_widths", self.flow_widths, 1, min_len=1)
         for i, width in enumerate(self.flow_widths):
             check_group_norm_width(f"flow_widths[{i}]", width)

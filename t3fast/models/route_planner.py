@@ -51,14 +51,17 @@ class RoutePlanner(nn.Module):
         past: past displacements read.
         scene: read the road ahead; False: the past displacements and the command only (the
             planes are accepted and not read).
+        modes: candidate plans, each with a score; the plan is the best-scored one (trained
+            winner-takes-all: a mode can be nearly exact where one plan would hedge between
+            futures). One mode: the plain correction.
     """
 
     reads_command = True
 
     def __init__(self, channels: int, plane_shape: tuple[int, int], steps: int = 6, past: int = 4,
-                 scene: bool = True):
+                 scene: bool = True, modes: int = 1):
         super().__init__()
-        self.steps, self.past = steps, past
+        self.steps, self.past, self.modes = steps, past, modes
         self.window = ahead_window(plane_shape)
         self.scene: nn.Module | None = None
         if scene:
@@ -72,16 +75,28 @@ class RoutePlanner(nn.Module):
         self.head = nn.Sequential(
             nn.Linear((ROUTE_HIDDEN if scene else 0) + 2 * past + len(COMMANDS), ROUTE_HIDDEN), nn.SiLU(),
             nn.Linear(ROUTE_HIDDEN, ROUTE_HIDDEN), nn.SiLU(),
-            nn.Linear(ROUTE_HIDDEN, 2 * steps),
+            nn.Linear(ROUTE_HIDDEN, (2 * steps + 1) * modes if modes > 1 else 2 * steps),
         )
-        nn.init.zeros_(self.head[-1].weight)  # untrained: constant turn rate
-        nn.init.zeros_(self.head[-1].bias)
+        nn.init.zeros_(self.head[-1].bias)  # untrained: constant turn rate
+        if modes > 1:  # the modes must differ to be told apart (winner-takes-all)
+            nn.init.normal_(self.head[-1].weight, std=1e-3)
+        else:
+            nn.init.zeros_(self.head[-1].weight)
 
     def forward(self, present: Tensor, previous: Tensor, past_actions: Tensor, command: Tensor | None = None) -> Tensor:
         """``present``, ``previous``: xy planes ``[B, C, H, W]`` of the present and the frame
         before (ego-aligned); ``past_actions`` ``[B, T, 2]`` (present frame, metres per step;
         the last ``past`` are read); ``command`` int64 ``[B]`` (:mod:`t3fast.data.route`; -1: none
-        for that window) or None (none for any) -> displacements ``[B, steps, 2]``."""
+        for that window) or None (none for any) -> displacements ``[B, steps, 2]`` (the
+        best-scored mode)."""
+        plans, scores = self.candidates(present, previous, past_actions, command)
+        best = scores.argmax(dim=1)
+        return plans[torch.arange(plans.shape[0], device=plans.device), best]
+
+    def candidates(self, present: Tensor, previous: Tensor, past_actions: Tensor,
+                   command: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Every mode's displacements ``[B, modes, steps, 2]`` and scores ``[B, modes]`` (logits;
+        zero for one mode); arguments as :meth:`forward`."""
         b = present.shape[0]
         if past_actions.shape[1] < self.past:
             raise ValueError(f"RoutePlanner reads {self.past} past displacements, got {past_actions.shape[1]}")
@@ -95,5 +110,7 @@ class RoutePlanner(nn.Module):
         if self.scene is not None:
             rows, cols = self.window
             features.insert(0, self.scene(torch.cat([present, present - previous], dim=1)[:, :, rows, cols]))
-        correction = self.head(torch.cat(features, dim=1)).view(b, self.steps, 2)
-        return constant_turn_rate(recent, self.steps).to(correction.dtype) + correction
+        out = self.head(torch.cat(features, dim=1))
+        correction = out[:, : 2 * self.steps * self.modes].view(b, self.modes, self.steps, 2)
+        scores = out[:, 2 * self.steps * self.modes :] if self.modes > 1 else out.new_zeros(b, 1)
+        return constant_turn_rate(recent, self.steps).to(correction.dtype).unsqueeze(1) + correction, scores

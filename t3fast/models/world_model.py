@@ -241,6 +241,7 @@ class T3Former(nn.Module):
             steps=world.steps,
             past=world.past_actions,
             scene=world.route_scene,
+            modes=world.route_modes,
         ) if world.planner == "route" else MotionPlanner(
             channels=autoencoder.channels,
             widths=world.planner_widths,
@@ -378,7 +379,7 @@ class T3Former(nn.Module):
         points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
         plan_from: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
     ) -> (tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]
-          | Tensor):
+          | tuple[Tensor, Tensor]):
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
 
@@ -391,14 +392,15 @@ class T3Former(nn.Module):
         :class:`~t3fast.models.route_planner.RoutePlanner`; they may be other windows than the
         forecaster's), else None. ``velocity``: as for :meth:`rollout`.
 
-        With ``past`` None, only the route planner's displacements for ``plan_from`` (the planner
-        trained on its own, :mod:`t3fast.training.planner`).
+        With ``past`` None, only the route planner's candidate plans and their scores for
+        ``plan_from`` (:meth:`RoutePlanner.candidates`; the planner trained on its own,
+        :mod:`t3fast.training.planner`).
         """
         if past is None:
             if plan_from is None or not self.reads_command:
                 raise ValueError("without past planes the forward pass is the route planner's alone: it needs "
                                  "plan_from and world_config.planner = 'route'")
-            return self.planner(*plan_from)
+            return self.planner.candidates(*plan_from)
         if motion:
             if not isinstance(self.forecaster, FlowTriplaneForecaster):
                 raise ValueError("motion=True needs the flow forecaster (world_config.forecaster = 'flow')")

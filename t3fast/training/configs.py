@@ -218,10 +218,20 @@ class PlannerConfig:
 
     world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (model.planner must be "route")
     scene: bool = True  # the planner reads the road ahead (model.route_scene of the world model it goes into)
+    modes: int = 1  # candidate plans (model.route_modes): winner-takes-all, scored by a cross-entropy
     command_dropout: float = 0.3  # share of training windows planned without the route command
+    # + precision_weight x mean(1 - exp(-d^2 / 2 s^2)), s = precision_scale metres: a forecast
+    # rendered from a pose is right only when the pose is within a voxel or two, so reward plans
+    # that are nearly exact over plans that are less wrong on average
+    precision_weight: float = 0.0
+    precision_scale: float = 0.5
     data: PlanDataConfig = field(default_factory=PlanDataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.command_dropout, int | float) and 0 <= self.command_dropout <= 1):
             raise ConfigError(f"command_dropout must be a share in [0, 1], got {self.command_dropout!r}")
+        _weights("", self, ("precision_weight",), "0 turns the term off")
+        _at_least("", self, {"modes": 1})
+        if not (math.isfinite(self.precision_scale) and self.precision_scale > 0):
+            raise ConfigError(f"precision_scale must be > 0 metres, got {self.precision_scale}")

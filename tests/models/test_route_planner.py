@@ -86,6 +86,8 @@ def test_route_planner_config_and_the_world_models_command_checks():
         WorldModelConfig(planner="vad")
     with pytest.raises(ConfigError, match="'planner'='route' .* needs ego_aligned=true"):
         WorldModelConfig(planner="route")
+    with pytest.raises(ConfigError, match=r"'route_modes' must be an integer in \[1, 16\], got 0"):
+        WorldModelConfig(route_modes=0)
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
     world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], ego_aligned=True, tracker_prior=True,

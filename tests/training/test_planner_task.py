@@ -49,6 +49,21 @@ def test_the_cache_holds_the_planes_inference_encodes(world_ckpt, tmp_path):
         assert batch.command[i] == sample.command
 
 
+def test_a_cache_without_planes_encodes_nothing_and_holds_the_same_motion(world_ckpt, tmp_path, monkeypatch):
+    model = load_world_model(world_ckpt)
+    windows = SyntheticDriving("train", 1, 13, stride=2)
+    full = PlanCache(windows, model, tmp_path)
+    full.build(progress=False)
+    monkeypatch.setattr(model, "encode_history", lambda *a: pytest.fail("encoded a frame"))
+    motion = PlanCache(windows, model, tmp_path, planes=False)
+    assert motion.root != full.root and motion.build(progress=False) == 1
+    a, b = full.all(), motion.all()
+    assert b.present.shape == (2, 0, 1, 1)
+    torch.testing.assert_close(a.past_actions, b.past_actions)
+    torch.testing.assert_close(a.future_actions, b.future_actions)
+    assert torch.equal(a.command, b.command)
+
+
 def test_a_cache_missing_a_scene_says_so(world_ckpt, tmp_path):
     cache = PlanCache(SyntheticDriving("train", 1, 12), load_world_model(world_ckpt), tmp_path)
     with pytest.raises(FileNotFoundError, match="1 scenes are not cached"):
@@ -89,7 +104,7 @@ def test_the_planner_learns_the_windows_it_sees(world_ckpt):
     base = position_errors(constant_turn_rate(past, 6), future).mean()
     opt = torch.optim.Adam(planner.parameters(), lr=1e-3)
     for _ in range(200):
-        loss = position_errors(model(None, None, plan_from=batch.inputs()), future).mean()
+        loss = position_errors(model(None, None, plan_from=batch.inputs())[0][:, 0], future).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -116,8 +131,9 @@ def test_train_planner_retrains_only_the_planner_and_its_checkpoints_are_world_m
     assert evals[0]["values"]["command_l2_mean_ratio"] == pytest.approx(1.0)  # a new planner: constant turn rate
     assert {"no_command_l2_3s", "ctr_l2_mean", "command_l2_mean_ratio", "score"} <= set(evals[-1]["values"])
     before, after = load_world_model(world_ckpt).state_dict(), load_world_model(out / "last.pt").state_dict()
-    changed = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
-    assert changed == {"planner"}
+    kept = [k for k in before if not k.startswith("planner.")]
+    assert kept and all(torch.equal(before[k], after[k]) for k in kept)
+    assert load_world_model(out / "last.pt").planner.scene is None  # the preset's planner: past motion and command
     capsys.readouterr()
     assert main(["eval", str(out / "last.pt"), "--scenes", "1", "--stride", "29", "--out", str(tmp_path / "ev")]) == 0
     assert "t3former_no_command" in json.loads((tmp_path / "ev" / "metrics.json").read_text())
@@ -146,3 +162,22 @@ def test_a_planner_without_the_scene_reads_only_the_past_motion_and_the_command(
                         batch.future_actions, batch.command)
     torch.testing.assert_close(model.planner(*batch.inputs()), model.planner(*other.inputs()))
     assert not torch.allclose(model.planner(*batch.inputs()), model.planner(*batch.inputs()[:3], None))
+
+
+def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_on_the_futures_it_wins(world_ckpt):
+    task = PlannerTask(PlannerConfig(world_model=str(world_ckpt), scene=False, modes=3))
+    model = task.build_model().train()
+    planner = model.planner
+    batch = _windows(n=3)
+    plans, scores = model(None, None, plan_from=batch.inputs())
+    assert plans.shape == (3, 3, 6, 2) and scores.shape == (3, 3)
+    ctr = constant_turn_rate(batch.past_actions, 6)
+    torch.testing.assert_close(plans, ctr.unsqueeze(1).expand_as(plans), atol=0.05, rtol=0)  # untrained: about it
+    with torch.no_grad():
+        planner.head[-1].bias[-3:] = torch.tensor([0.0, 5.0, 0.0])  # mode 1 scores best
+    torch.testing.assert_close(planner(*batch.inputs()), model(None, None, plan_from=batch.inputs())[0][:, 1])
+    loss, values = task.training_step(model, batch)
+    assert {"closest_l2", "mode_choice"} <= set(values) and torch.isfinite(loss)
+    loss.backward()
+    assert planner.head[-1].weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in model.forecaster.parameters())

@@ -8,7 +8,8 @@ same cost. The frames are encoded as at inference (:meth:`T3Former.encode_histor
 file per scene (float16 planes, about 0.3 MB a window with the small autoencoder), written
 atomically; building is resumable and shows progress. The folder's name hashes the encoder's
 weights and the split's first scene, so a new autoencoder or a changed world builds a new
-cache.
+cache. A planner that does not read the scene (``planes=False``) needs no encoding at all: its
+cache holds the displacements only (and empty planes).
 """
 
 from __future__ import annotations
@@ -62,16 +63,19 @@ class PlanCache(Dataset):
         windows: the windows (``flip=False``; mirroring happens per batch).
         model: an ego-aligned :class:`T3Former` whose frozen encoder encodes the frames.
         cache_dir: parent folder; the cache is ``cache_dir/plan-<encoder>-<world>-<split>-...``.
+        planes: encode the planes; False: the displacements only (the planes are empty,
+            ``[B, 0, 1, 1]``), for a planner that does not read the scene.
     """
 
-    def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
+    def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path, planes: bool = True):
         if windows.flip:
             raise ValueError("PlanCache stores windows as generated: pass flip=False")
         if not model.ego_aligned:
             raise ValueError("the route planner reads ego-aligned planes: the model needs ego_aligned=True")
-        self.windows, self.model = windows, model
+        self.windows, self.model, self.planes = windows, model, planes
         scenes = windows.scenes
-        key = (f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f"
+        source = encoder_digest(model.encoder) if planes else "motion"
+        key = (f"{source}-{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f"
                f"-stride{windows.stride}-v{PLAN_CACHE_FORMAT}")
         self.root = Path(cache_dir) / f"plan-{key}"
         self._by_scene: dict[int, list[int]] = {}
@@ -88,17 +92,13 @@ class PlanCache(Dataset):
 
     @torch.no_grad()
     def build(self, progress: bool = True) -> int:
-        """Encode every scene not yet cached; returns how many were encoded."""
+        """Cache (encode) every scene not yet cached; returns how many were cached."""
         todo = self.missing()
         device = next(self.model.parameters()).device
-        for scene in tqdm(todo, desc="encode planner windows", unit="scene", disable=not progress or not todo):
+        desc = "encode planner windows" if self.planes else "planner windows"
+        for scene in tqdm(todo, desc=desc, unit="scene", disable=not progress or not todo):
             samples = [self.windows[i] for i in self._by_scene[scene]]
-            occ = torch.stack([s.occ[PRESENT - 1 : PRESENT + 1] for s in samples]).to(device)
-            poses = torch.stack([planar_poses(s.ego_poses[None], PRESENT)[0, PRESENT - 1 : PRESENT + 1]
-                                 for s in samples]).to(device)
-            chunks = range(0, len(samples), ENCODE_WINDOWS)
-            xy = torch.cat([self.model.encode_history(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
-                            for i in chunks])
+            xy = self._encode(samples, device) if self.planes else torch.zeros(len(samples), 2, 0, 1, 1)
             save_checkpoint(
                 {
                     "xy": xy.half().cpu(),  # [W, 2 (previous, present), C, H, W]
@@ -108,6 +108,14 @@ class PlanCache(Dataset):
                 self.path(scene),
             )
         return len(todo)
+
+    def _encode(self, samples: list, device: torch.device) -> Tensor:
+        """The previous and present xy planes ``[W, 2, C, H, W]`` of the windows ``samples``."""
+        occ = torch.stack([s.occ[PRESENT - 1 : PRESENT + 1] for s in samples]).to(device)
+        poses = torch.stack([planar_poses(s.ego_poses[None], PRESENT)[0, PRESENT - 1 : PRESENT + 1]
+                             for s in samples]).to(device)
+        return torch.cat([self.model.encode_history(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
+                          for i in range(0, len(samples), ENCODE_WINDOWS)])
 
     def _load(self) -> dict[str, Tensor]:
         if self._data is None:

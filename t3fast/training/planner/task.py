@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from t3fast.data.route import mirror_command
@@ -44,9 +45,9 @@ def mirror_left_right(batch: PlanWindows) -> PlanWindows:
 
 
 def position_errors(actions: Tensor, future_actions: Tensor) -> Tensor:
-    """Distance (metres) between planned and true positions ``[B, S]`` from displacements
-    ``[B, S, 2]``."""
-    return (actions.cumsum(1) - future_actions.cumsum(1)).norm(dim=-1)
+    """Distance (metres) between planned and true positions ``[..., S]`` from displacements
+    ``[..., S, 2]`` (broadcast: e.g. every mode ``[B, K, S, 2]`` against ``[B, 1, S, 2]``)."""
+    return (actions.cumsum(-2) - future_actions.cumsum(-2)).norm(dim=-1)
 
 
 def plan_summary(errors: Tensor) -> dict[str, float]:
@@ -78,7 +79,7 @@ class PlannerTask:
         autoencoder = load_config(AutoencoderConfig, task["autoencoder"])
         world = load_config(WorldModelConfig, task["model"])
         fresh = RoutePlanner(autoencoder.channels, autoencoder.plane_shape[:2], world.steps, world.past_actions,
-                             scene=world.route_scene)
+                             scene=world.route_scene, modes=world.route_modes)
         weights = {k: v for k, v in self._state["model"].items() if not k.startswith("planner.")}
         weights.update({f"planner.{k}": v for k, v in fresh.state_dict().items()})
         model = world_model_from_checkpoint({"model": weights, "config": {"task": task}}, self.cfg.world_model)
@@ -92,7 +93,7 @@ class PlannerTask:
             raise RuntimeError("build_model() must run before the planner's windows are read")
         data = self.cfg.data
         windows = SyntheticDriving(split, scenes, data.frames_per_scene, stride=data.stride)
-        cache = PlanCache(windows, self._model, data.cache_dir)
+        cache = PlanCache(windows, self._model, data.cache_dir, planes=self.cfg.scene)
         if is_main():
             cache.build()
         barrier()
@@ -112,11 +113,22 @@ class PlannerTask:
             batch = mirror_left_right(batch)
         dropped = torch.rand(batch.command.shape, generator=self._generator) < self.cfg.command_dropout
         command = torch.where(dropped.to(batch.command.device), torch.full_like(batch.command, -1), batch.command)
-        planned = model(None, None, plan_from=(batch.present, batch.previous, batch.past_actions, command))
-        errors = position_errors(planned, batch.future_actions)
-        loss = errors.mean()
-        base = position_errors(constant_turn_rate(batch.past_actions, planned.shape[1]), batch.future_actions)
-        return loss, {"plan_l2": loss.item(), "ctr_l2": base.mean().item()}
+        plans, scores = model(None, None, plan_from=(batch.present, batch.previous, batch.past_actions, command))
+        every = position_errors(plans, batch.future_actions.unsqueeze(1))  # [B, modes, S]
+        rows = torch.arange(every.shape[0], device=every.device)
+        winner = every.mean(2).argmin(1)  # the mode closest to this future learns it
+        errors = every[rows, winner]
+        distance = errors.mean()
+        miss = (1 - torch.exp(-0.5 * (errors / self.cfg.precision_scale).square())).mean()
+        base = position_errors(constant_turn_rate(batch.past_actions, plans.shape[2]), batch.future_actions)
+        loss = distance + self.cfg.precision_weight * miss
+        values = {"plan_l2": every[rows, scores.argmax(1)].mean().item(), "ctr_l2": base.mean().item(),
+                  "plan_miss": miss.item()}
+        if plans.shape[1] > 1:  # the scores learn which mode wins
+            choice = F.cross_entropy(scores, winner)
+            loss = loss + choice
+            values.update(closest_l2=distance.item(), mode_choice=choice.item())
+        return loss, values
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """On every validation window: L2 at 3 s and mean-L2 of the plans with and without the
@@ -144,5 +156,5 @@ class PlannerTask:
         """The world model's own config with the planner's (the checkpoints are world-model
         checkpoints)."""
         task = copy.deepcopy(self._state["config"]["task"])
-        task["model"]["route_scene"] = self.cfg.scene
+        task["model"].update(route_scene=self.cfg.scene, route_modes=self.cfg.modes)
         return task

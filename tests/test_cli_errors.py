@@ -155,7 +155,7 @@ BAD_HEADS = (lambda s: s["config"]["task"]["model"].update(planner_heads=7),
     [
         WRONG_SHAPE,
         (lambda s: s["model"].pop("planner.head.0.weight"),
-         "weight 'planner.head.0.weight' is missing (the config 'task.model' builds it with shape [128, 139])"),
+         "weight 'planner.head.0.weight' is missing (the config 'task.model' builds it with shape [128, 11])"),
         (lambda s: s["model"].__setitem__("planner.extra", torch.zeros(2)),
          "weight 'planner.extra' is not part of the model its config 'task.model' builds"),
         NO_AUTOENCODER,

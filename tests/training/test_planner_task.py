@@ -128,7 +128,7 @@ def test_train_planner_retrains_only_the_planner_and_its_checkpoints_are_world_m
     events = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     evals = [e for e in events if e["event"] == "eval"]
     assert [e["step"] for e in evals] == [0, 2, 3]
-    assert evals[0]["values"]["command_l2_mean_ratio"] == pytest.approx(1.0)  # a new planner: constant turn rate
+    assert evals[0]["values"]["command_l2_mean_ratio"] == pytest.approx(1.0, abs=0.01)  # new: constant turn rate
     assert {"no_command_l2_3s", "ctr_l2_mean", "command_l2_mean_ratio", "score"} <= set(evals[-1]["values"])
     before, after = load_world_model(world_ckpt).state_dict(), load_world_model(out / "last.pt").state_dict()
     kept = [k for k in before if not k.startswith("planner.")]

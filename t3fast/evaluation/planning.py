@@ -98,14 +98,21 @@ class PlanningMetrics:
 
     def summary(self) -> dict[str, dict[str, float]]:
         """``{"l2_at", "l2_mean", "collision"}``, each ``{"1s", "2s", "3s", "avg"}`` (metres; rate)."""
-        l2 = torch.stack(self.l2)  # [N, S]
         collided, counted = torch.stack(self.collided), torch.stack(self.counted)
-        out: dict[str, dict[str, float]] = {"l2_at": {}, "l2_mean": {}, "collision": {}}
+        collision = {}
         for name, step in HORIZONS.items():
-            out["l2_at"][name] = float(l2[:, step - 1].mean())
-            out["l2_mean"][name] = float(l2[:, :step].mean())
             n = counted[:, :step].sum()
-            out["collision"][name] = float((collided[:, :step] & counted[:, :step]).sum() / n) if n else 0.0
-        for key in out:
-            out[key]["avg"] = sum(out[key][h] for h in HORIZONS) / len(HORIZONS)
-        return out
+            collision[name] = float((collided[:, :step] & counted[:, :step]).sum() / n) if n else 0.0
+        return l2_summary(torch.stack(self.l2)) | {"collision": with_average(collision)}
+
+
+def l2_summary(l2: Tensor) -> dict[str, dict[str, float]]:
+    """``{"l2_at", "l2_mean"}`` (see the module doc), each ``{"1s", "2s", "3s", "avg"}``, of the
+    position errors ``l2`` ``[N, S]`` (metres) of N plans."""
+    return {"l2_at": with_average({name: float(l2[:, step - 1].mean()) for name, step in HORIZONS.items()}),
+            "l2_mean": with_average({name: float(l2[:, :step].mean()) for name, step in HORIZONS.items()})}
+
+
+def with_average(by_horizon: dict[str, float]) -> dict[str, float]:
+    """``by_horizon`` plus ``"avg"``, the mean over :data:`HORIZONS`."""
+    return by_horizon | {"avg": sum(by_horizon[h] for h in HORIZONS) / len(HORIZONS)}

@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
 from t3fast.data.route import COMMANDS
 from t3fast.models.blocks import group_norm
+from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.planner import constant_turn_rate
 
 AHEAD = ((-8.0, 40.0), (-24.0, 24.0))  # metres along x and y (present frame) the planner reads
@@ -82,6 +83,12 @@ class RoutePlanner(nn.Module):
             nn.init.normal_(self.head[-1].weight, std=1e-3)
         else:
             nn.init.zeros_(self.head[-1].weight)
+
+    @classmethod
+    def from_config(cls, autoencoder: AutoencoderConfig, world: WorldModelConfig) -> RoutePlanner:
+        """The (untrained) route planner of a world model of these sizes."""
+        return cls(autoencoder.channels, autoencoder.plane_shape[:2], steps=world.steps, past=world.past_actions,
+                   scene=world.route_scene, modes=world.route_modes)
 
     def forward(self, present: Tensor, previous: Tensor, past_actions: Tensor, command: Tensor | None = None) -> Tensor:
         """``present``, ``previous``: xy planes ``[B, C, H, W]`` of the present and the frame

@@ -235,14 +235,7 @@ class T3Former(nn.Module):
             predict_delta=world.predict_delta,
             bev=bev,
         )
-        planner = RoutePlanner(
-            channels=autoencoder.channels,
-            plane_shape=autoencoder.plane_shape[:2],
-            steps=world.steps,
-            past=world.past_actions,
-            scene=world.route_scene,
-            modes=world.route_modes,
-        ) if world.planner == "route" else MotionPlanner(
+        planner = RoutePlanner.from_config(autoencoder, world) if world.planner == "route" else MotionPlanner(
             channels=autoencoder.channels,
             widths=world.planner_widths,
             d_act=world.d_act,

@@ -36,6 +36,13 @@ def _weights(section: str, cfg: object, keys: tuple[str, ...], zero: str) -> Non
             raise ConfigError(f"{section}{key} must be >= 0 ({zero}), got {value}")
 
 
+def _share(section: str, cfg: object, key: str) -> None:
+    """A probability: ``cfg.<key>`` a number in ``[0, 1]``."""
+    value = getattr(cfg, key)
+    if not (isinstance(value, int | float) and 0 <= value <= 1):
+        raise ConfigError(f"{section}{key} must be a share in [0, 1], got {value!r}")
+
+
 @dataclass
 class TrainConfig:
     """Settings of :class:`Trainer` (load with :func:`t3fast.io.config.load_config`)."""
@@ -174,8 +181,7 @@ class WorldLossConfig:
                                  "static_flow_weight"), "0 turns the term off")
         if not 1 <= self.rollout_steps <= NUM_FUTURE:
             raise ConfigError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {self.rollout_steps}")
-        if not (isinstance(self.command_dropout, int | float) and 0 <= self.command_dropout <= 1):
-            raise ConfigError(f"loss.command_dropout must be a share in [0, 1], got {self.command_dropout!r}")
+        _share("loss.", self, "command_dropout")
         _at_least("loss.", self, {"num_occupied": 0, "num_near_free": 0, "num_far_free": 0, "num_changed": 0})
 
 
@@ -229,8 +235,7 @@ class PlannerConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.command_dropout, int | float) and 0 <= self.command_dropout <= 1):
-            raise ConfigError(f"command_dropout must be a share in [0, 1], got {self.command_dropout!r}")
+        _share("", self, "command_dropout")
         _weights("", self, ("precision_weight",), "0 turns the term off")
         _at_least("", self, {"modes": 1})
         if not (math.isfinite(self.precision_scale) and self.precision_scale > 0):

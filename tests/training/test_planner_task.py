@@ -19,7 +19,8 @@ from t3fast.models.planner import constant_turn_rate
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import PlannerConfig
 from t3fast.training.planner.plan_cache import PlanCache, PlanWindows
-from t3fast.training.planner.task import PlannerTask, mirror_left_right, plan_summary, position_errors
+from t3fast.training.planner.task import PlannerTask, mirror_left_right, plan_summary
+from t3fast.training.world_model.plan_loss import plan_error
 
 TINY_PLAN = ["data.train_scenes=1", "data.val_scenes=1", "data.frames_per_scene=14", "data.stride=1",
              "train.batch_size=2", "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
@@ -86,7 +87,7 @@ def test_plan_summary_follows_the_evaluation_conventions():
     summary = plan_summary(errors)
     assert summary["l2_3s"] == 6.0
     assert summary["l2_mean"] == pytest.approx((1.5 + 2.5 + 3.5) / 3)
-    assert position_errors(torch.ones(1, 6, 2), torch.ones(1, 6, 2)).abs().max() == 0
+    assert plan_error(torch.ones(1, 6, 2), torch.ones(1, 6, 2)).abs().max() == 0
 
 
 def test_the_planner_learns_the_windows_it_sees(world_ckpt):
@@ -101,10 +102,10 @@ def test_the_planner_learns_the_windows_it_sees(world_ckpt):
     future = past[:, :1] * torch.rand(4, 1, 1, generator=g) * 2 + torch.randn(4, 6, 2, generator=g) * 0.3
     batch = PlanWindows(torch.randn(4, c, h, w, generator=g), torch.randn(4, c, h, w, generator=g), past, future,
                         torch.full((4,), STRAIGHT))
-    base = position_errors(constant_turn_rate(past, 6), future).mean()
+    base = plan_error(constant_turn_rate(past, 6), future).mean()
     opt = torch.optim.Adam(planner.parameters(), lr=1e-3)
     for _ in range(200):
-        loss = position_errors(model(None, None, plan_from=batch.inputs())[0][:, 0], future).mean()
+        loss = plan_error(model(None, None, plan_from=batch.inputs())[0][:, 0], future).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from t3fast.data.route import mirror_command
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
-from t3fast.evaluation.planning import HORIZONS
+from t3fast.evaluation.planning import l2_summary
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.io.config import load_config
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
@@ -32,6 +32,7 @@ from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import PlannerConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.planner.plan_cache import PlanCache, PlanWindows, collate_plan
+from t3fast.training.world_model.plan_loss import drop_commands, plan_error
 
 
 def mirror_left_right(batch: PlanWindows) -> PlanWindows:
@@ -44,18 +45,11 @@ def mirror_left_right(batch: PlanWindows) -> PlanWindows:
                        flip_y(batch.future_actions), mirror_command(batch.command))
 
 
-def position_errors(actions: Tensor, future_actions: Tensor) -> Tensor:
-    """Distance (metres) between planned and true positions ``[..., S]`` from displacements
-    ``[..., S, 2]`` (broadcast: e.g. every mode ``[B, K, S, 2]`` against ``[B, 1, S, 2]``)."""
-    return (actions.cumsum(-2) - future_actions.cumsum(-2)).norm(dim=-1)
-
-
 def plan_summary(errors: Tensor) -> dict[str, float]:
     """L2 at 3 s and mean-L2 (mean over the steps up to 1, 2, 3 s, averaged; as
     :class:`~t3fast.evaluation.planning.PlanningMetrics`) of position errors ``[N, S]``."""
-    last = HORIZONS["3s"]
-    mean = sum(float(errors[:, :step].mean()) for step in HORIZONS.values()) / len(HORIZONS)
-    return {"l2_3s": float(errors[:, last - 1].mean()), "l2_mean": mean}
+    l2 = l2_summary(errors)
+    return {"l2_3s": l2["l2_at"]["3s"], "l2_mean": l2["l2_mean"]["avg"]}
 
 
 class PlannerTask:
@@ -76,10 +70,8 @@ class PlannerTask:
         """The world model with a new route planner (constant turn rate: its last layer is zero)
         of ``cfg.scene``; every other weight from ``cfg.world_model``."""
         task = self.config_dict()
-        autoencoder = load_config(AutoencoderConfig, task["autoencoder"])
-        world = load_config(WorldModelConfig, task["model"])
-        fresh = RoutePlanner(autoencoder.channels, autoencoder.plane_shape[:2], world.steps, world.past_actions,
-                             scene=world.route_scene, modes=world.route_modes)
+        fresh = RoutePlanner.from_config(load_config(AutoencoderConfig, task["autoencoder"]),
+                                         load_config(WorldModelConfig, task["model"]))
         weights = {k: v for k, v in self._state["model"].items() if not k.startswith("planner.")}
         weights.update({f"planner.{k}": v for k, v in fresh.state_dict().items()})
         model = world_model_from_checkpoint({"model": weights, "config": {"task": task}}, self.cfg.world_model)
@@ -111,16 +103,15 @@ class PlannerTask:
     def training_step(self, model: nn.Module, batch: PlanWindows) -> tuple[Tensor, dict[str, float]]:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
-        dropped = torch.rand(batch.command.shape, generator=self._generator) < self.cfg.command_dropout
-        command = torch.where(dropped.to(batch.command.device), torch.full_like(batch.command, -1), batch.command)
+        command = drop_commands(batch.command, self.cfg.command_dropout, self._generator)
         plans, scores = model(None, None, plan_from=(batch.present, batch.previous, batch.past_actions, command))
-        every = position_errors(plans, batch.future_actions.unsqueeze(1))  # [B, modes, S]
+        every = plan_error(plans, batch.future_actions.unsqueeze(1))  # [B, modes, S]
         rows = torch.arange(every.shape[0], device=every.device)
         winner = every.mean(2).argmin(1)  # the mode closest to this future learns it
         errors = every[rows, winner]
         distance = errors.mean()
         miss = (1 - torch.exp(-0.5 * (errors / self.cfg.precision_scale).square())).mean()
-        base = position_errors(constant_turn_rate(batch.past_actions, plans.shape[2]), batch.future_actions)
+        base = plan_error(constant_turn_rate(batch.past_actions, plans.shape[2]), batch.future_actions)
         loss = distance + self.cfg.precision_weight * miss
         values = {"plan_l2": every[rows, scores.argmax(1)].mean().item(), "ctr_l2": base.mean().item(),
                   "plan_miss": miss.item()}
@@ -142,9 +133,9 @@ class PlannerTask:
         values: dict[str, float] = {}
         for name, command in (("command", val.command), ("no_command", None)):
             planned = model.planner(val.present, val.previous, val.past_actions, command)
-            summary = plan_summary(position_errors(planned, val.future_actions))
+            summary = plan_summary(plan_error(planned, val.future_actions))
             values.update({f"{name}_{k}": v for k, v in summary.items()})
-        ctr = plan_summary(position_errors(constant_turn_rate(val.past_actions, steps), val.future_actions))
+        ctr = plan_summary(plan_error(constant_turn_rate(val.past_actions, steps), val.future_actions))
         values.update({f"ctr_{k}": v for k, v in ctr.items()})
         for name in ("command", "no_command"):
             for k in ("l2_3s", "l2_mean"):

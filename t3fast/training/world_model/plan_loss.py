@@ -36,13 +36,17 @@ def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Gen
     if bool(torch.rand((), generator=generator) < 0.5):
         batch = flip_aligned(batch, False, True, False)
     xy = batch.planes.xy
-    command = route_command(batch.future_actions)
-    dropped = (torch.rand(command.shape, generator=generator) < command_dropout).to(command.device)
-    command = torch.where(dropped, torch.full_like(command, -1), command)
+    command = drop_commands(route_command(batch.future_actions), command_dropout, generator)
     return PlanBatch((xy[:, PRESENT], xy[:, PRESENT - 1], batch.past_actions, command), batch.future_actions)
 
 
+def drop_commands(command: Tensor, share: float, generator: torch.Generator | None = None) -> Tensor:
+    """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``."""
+    dropped = (torch.rand(command.shape, generator=generator) < share).to(command.device)
+    return torch.where(dropped, torch.full_like(command, -1), command)
+
+
 def plan_error(planned: Tensor, future_actions: Tensor) -> Tensor:
-    """Distance (metres) between planned and true positions per window and step ``[B, S]``
-    from displacements ``[B, S, 2]``."""
-    return (planned.cumsum(1) - future_actions.cumsum(1)).norm(dim=-1)
+    """Distance (metres) between planned and true positions ``[..., S]`` from displacements
+    ``[..., S, 2]`` (broadcast: e.g. every mode ``[B, K, S, 2]`` against ``[B, 1, S, 2]``)."""
+    return (planned.cumsum(-2) - future_actions.cumsum(-2)).norm(dim=-1)

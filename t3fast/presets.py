@@ -18,6 +18,7 @@ from pathlib import Path
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.training.configs import (
     FramesConfig,
+    MotionConfig,
     PlanDataConfig,
     PlannerConfig,
     SequencesConfig,
@@ -27,7 +28,8 @@ from t3fast.training.configs import (
     WorldLossConfig,
 )
 
-STAGES = {"ae": "stage-1 (autoencoder)", "wm": "stage-2 (world model)", "plan": "route planner"}
+STAGES = {"ae": "stage-1 (autoencoder)", "wm": "stage-2 (world model)", "plan": "route planner",
+          "motion": "motion head"}
 
 # ---------------------------------------------------------------- model sizes
 AUTOENCODER_SIZES = {
@@ -112,7 +114,7 @@ _SMALL_AE = dict(train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_ste
                  eval_every=500, ckpt_every=250)
 
 #: run name -> a fresh config of that run; the demo shows the world models in this order
-PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig]] = {
+PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig | MotionConfig]] = {
     "ae-small": lambda: _stage1("small", **_SMALL_AE),
     "ae-small-bev": lambda: _stage1("small-bev", **_SMALL_AE),
     "ae-paper": lambda: _stage1("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
@@ -139,6 +141,13 @@ PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig]] = 
         train=TrainConfig(steps=4000, batch_size=32, lr=1e-3, warmup_steps=100, log_every=50, eval_every=250,
                           eval_at_start=True, ckpt_every=250, out_dir="runs/plan-small"),
     ),
+    # a new motion head for the shipped world model, trained on its own on 10x the scenes of
+    # its world-model run
+    "motion-small": lambda: MotionConfig(
+        world_model="wm-small", data=PlanDataConfig(train_scenes=300, val_scenes=40),
+        train=TrainConfig(steps=6000, batch_size=16, lr=1e-3, warmup_steps=200, log_every=50, eval_every=500,
+                          eval_at_start=True, ckpt_every=250, out_dir="runs/motion-small"),
+    ),
     # full 6-step rollouts
     "wm-paper": lambda: Stage2Config(
         autoencoder_ckpt="runs/ae-paper/best.pt",
@@ -164,7 +173,7 @@ def run_name(name: str, stage: str | None = None) -> str | None:
     return full if full in PRESETS else None
 
 
-def preset(name: str, stage: str | None = None) -> Stage1Config | Stage2Config | PlannerConfig:
+def preset(name: str, stage: str | None = None) -> Stage1Config | Stage2Config | PlannerConfig | MotionConfig:
     """A fresh config of the run ``name`` (see :func:`run_name`)."""
     full = run_name(name, stage)
     if full is None:

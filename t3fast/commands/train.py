@@ -1,4 +1,4 @@
-"""``t3fast train-ae``, ``t3fast train-wm`` and ``t3fast train-planner``."""
+"""``t3fast train-ae``, ``t3fast train-wm``, ``t3fast train-planner`` and ``t3fast train-motion``."""
 
 from __future__ import annotations
 
@@ -30,6 +30,13 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     _add_run_flags(plan)
     plan.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
     plan.set_defaults(func=_train_planner)
+
+    motion = sub.add_parser("train-motion", help="retrain a world model's motion head on its own, on many windows")
+    motion.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
+    motion.add_argument("--wm", help="the world model whose motion head is retrained (overrides world_model)")
+    _add_run_flags(motion)
+    motion.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
+    motion.set_defaults(func=_train_motion)
 
 
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
@@ -115,3 +122,12 @@ def _train_planner(args: argparse.Namespace) -> int:
     overrides = _overrides(args) + ([f"world_model={args.wm}"] if args.wm else [])
     task = PlannerTask(_config(PlannerConfig, "plan", args.config, overrides))
     return _fit(task, task.cfg, ("planner",), f"route planner {args.config}")
+
+
+def _train_motion(args: argparse.Namespace) -> int:
+    from t3fast.training.configs import MotionConfig
+    from t3fast.training.motion.task import MotionTask
+
+    overrides = _overrides(args) + ([f"world_model={args.wm}"] if args.wm else [])
+    task = MotionTask(_config(MotionConfig, "motion", args.config, overrides))
+    return _fit(task, task.cfg, ("forecaster",), f"motion head {args.config}")

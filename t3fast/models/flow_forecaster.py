@@ -102,6 +102,11 @@ STILL = 1e-3  # a cell whose moving share and landed content are below this keep
 MATCH_FEATURES = 32  # channels the matching costs are compressed to before the UNet
 
 
+def _step_numbers(steps: int, like: Tensor) -> Tensor:
+    """``1 .. steps`` shaped ``[1, steps, 1, 1, 1]``: displacement = step number x velocity."""
+    return torch.arange(1, steps + 1, device=like.device, dtype=like.dtype).view(1, -1, 1, 1, 1)
+
+
 def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
     """``present`` ``[B, C, H, W]`` with each cell's content moved by its forward
     ``displacement`` ``[B, 2, H, W]`` (plane cells); cells that moving content leaves and none
@@ -181,8 +186,8 @@ class FlowTriplaneForecaster(nn.Module):
         if motion_context and not tracker_prior:
             raise ValueError("FlowTriplaneForecaster(motion_context=True) corrects the tracker: it needs tracker_prior")
         self.motion_context = motion_context
-        if tracker_prior:  # the correction starts at 0: the untrained forecaster is the tracker
-            self.motion_head = ContextMotionHead(channels, steps) if motion_context else cell_motion_head(steps)
+        if tracker_prior:
+            self.reset_motion_head()
         # the 1x1 fusion is the identity plus a learned part that starts at 0 (as in the Delta forecaster)
         self.fuse_residual = nn.Parameter(torch.zeros(channels, channels))
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
@@ -208,18 +213,10 @@ class FlowTriplaneForecaster(nn.Module):
             velocity = velocity.to(xy.dtype)
             inputs.append(velocity / self.flow_scale)
         out = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, self.flow_outputs + c, h, w)
-        k = torch.arange(1, self.steps + 1, device=out.device, dtype=out.dtype).view(1, -1, 1, 1, 1)
         if self.tracker_prior:
-            measured = (velocity != 0).any(1, keepdim=True).unsqueeze(1)  # [B, 1, 1, H, W]: cells of tracked agents
-            scaled = velocity / self.flow_scale
-            if self.motion_context:
-                correction = self.motion_head(scaled, xy[:, -1], xy[:, -2], measured[:, 0].to(xy.dtype))
-            else:
-                correction = self.motion_head(scaled)
-            correction = correction.view(b, self.steps, 2, h, w) * measured
-            displacements = (blended_velocity(velocity).unsqueeze(1) + correction * self.flow_scale) * k
+            displacements = self.tracked_motion(velocity, xy[:, -1], xy[:, -2])
         else:
-            displacements = out[:, :, :2] * self.flow_scale * k
+            displacements = out[:, :, :2] * self.flow_scale * _step_numbers(self.steps, out)
         deltas = out[:, :, self.flow_outputs :]
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
@@ -229,6 +226,28 @@ class FlowTriplaneForecaster(nn.Module):
             nxt = delta_fuse(deltas[:, k].contiguous(), moved.contiguous(), weight, self.fuse_bias)
             futures.append(Triplane(nxt, *(None if p is None else p[:, -1] for p in past[1:])))
         return futures, displacements, deltas
+
+    def reset_motion_head(self) -> None:
+        """A new motion head (``tracker_prior``): its correction starts at 0, so the forecaster
+        moves the agents exactly as the tracker does."""
+        self.motion_head = (ContextMotionHead(self.channels, self.steps) if self.motion_context
+                            else cell_motion_head(self.steps))
+
+    def tracked_motion(self, velocity: Tensor, present: Tensor, previous: Tensor) -> Tensor:
+        """With ``tracker_prior``: the forward displacements ``[B, steps, 2, H, W]`` (plane cells)
+        of the present cells, step ``k`` ``(k + 1)`` times the tracker's blended velocity plus the
+        motion head's correction on the tracked agents' cells (0 elsewhere), from the velocities
+        ``[B, 4, H, W]`` and the present and previous xy planes ``[B, C, H, W]``."""
+        b, _, h, w = velocity.shape
+        measured = (velocity != 0).any(1, keepdim=True).unsqueeze(1)  # [B, 1, 1, H, W]: cells of tracked agents
+        scaled = velocity / self.flow_scale
+        if self.motion_context:
+            correction = self.motion_head(scaled, present, previous, measured[:, 0].to(present.dtype))
+        else:
+            correction = self.motion_head(scaled)
+        correction = correction.view(b, self.steps, 2, h, w) * measured
+        return (blended_velocity(velocity).unsqueeze(1) + correction * self.flow_scale) * _step_numbers(self.steps,
+                                                                                                        velocity)
 
     def forward(
         self, past: Triplane, steps: int | None = None, first_step: int = 0, velocity: Tensor | None = None,

@@ -371,8 +371,9 @@ class T3Former(nn.Module):
         self, past: Triplane | None, past_actions: Tensor | None, steps: int = 6, first_step: int = 0,
         points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
         plan_from: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
+        motion_from: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> (tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]
-          | tuple[Tensor, Tensor]):
+          | tuple[Tensor, Tensor] | Tensor):
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]`` (one forward call, so DDP sees one graph).
 
@@ -387,8 +388,17 @@ class T3Former(nn.Module):
 
         With ``past`` None, only the route planner's candidate plans and their scores for
         ``plan_from`` (:meth:`RoutePlanner.candidates`; the planner trained on its own,
-        :mod:`t3fast.training.planner`).
+        :mod:`t3fast.training.planner`). With ``past`` None and ``motion_from`` (the tracker's
+        velocities ``[B, 4, H, W]``, the present and previous xy planes ``[B, C, H, W]``), only the
+        flow forecaster's displacements of the tracked agents ``[B, S, 2, H, W]``
+        (:meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.tracked_motion`; the motion
+        head trained on its own, :mod:`t3fast.training.motion`).
         """
+        if past is None and motion_from is not None:
+            if not getattr(self.forecaster, "tracker_prior", False):
+                raise ValueError("motion_from is the motion head's input: it needs the flow forecaster with "
+                                 "world_config.tracker_prior = True")
+            return self.forecaster.tracked_motion(*motion_from)
         if past is None:
             if plan_from is None or not self.reads_command:
                 raise ValueError("without past planes the forward pass is the route planner's alone: it needs "

@@ -205,10 +205,11 @@ class Stage2Config:
 
 @dataclass
 class PlanDataConfig:
-    """The windows the route planner trains and is selected on (synthetic; its own cache)."""
+    """The windows a part trained on its own (the route planner, the motion head) trains and is
+    selected on (synthetic; cached)."""
 
     train_scenes: int = 300
-    val_scenes: int = 40  # the planner is selected on these (the mean of their windows' L2)
+    val_scenes: int = 40  # the part is selected on these
     stride: int = 2  # frames between consecutive windows, in both splits
     frames_per_scene: int = 40
     cache_dir: str = "runs/cache"
@@ -240,3 +241,18 @@ class PlannerConfig:
         _at_least("", self, {"modes": 1})
         if not (math.isfinite(self.precision_scale) and self.precision_scale > 0):
             raise ConfigError(f"precision_scale must be > 0 metres, got {self.precision_scale}")
+
+
+@dataclass
+class MotionConfig:
+    """Everything ``t3fast train-motion`` needs: the motion head of a trained world model's flow
+    forecaster trained anew on its own, on many windows; the rest stays as it is."""
+
+    world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (a flow forecaster with tracker_prior)
+    min_flow: float = 0.5  # plane cells an agent moves in a step to count as moving
+    parked_weight: float = 1.0  # x the error of seen agents that did not move (a parked car must stand still)
+    data: PlanDataConfig = field(default_factory=PlanDataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        _weights("", self, ("parked_weight", "min_flow"), "0 turns it off")

@@ -28,6 +28,8 @@ forecaster has to get under.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor, nn
 
@@ -57,6 +59,52 @@ def agent_means(values: Tensor, owner: Tensor, cells: Tensor, agents: int) -> tu
     return (sums / count[:, :, None].clamp(min=1)).transpose(2, 3)[:, :, :agents], count[:, :, :agents]
 
 
+@dataclass
+class AgentTargets:
+    """What the flow term compares, per agent ``a`` and future step ``s``: ``cells`` int64
+    ``[B, H, W]`` (the agent each tracked cell under a box belongs to, -1 none: the cells the
+    render moves it by), ``visible`` bool ``[B, S, A]`` (seen now and then, with tracked cells)
+    and ``motion`` ``[B, S, A, 2]`` (its true mean displacement over those cells, plane cells)."""
+
+    cells: Tensor
+    visible: Tensor
+    motion: Tensor
+
+
+def agent_targets(target: Tensor, moving: Tensor, static: Tensor, covered: Tensor, owner: Tensor,
+                  velocity: Tensor) -> AgentTargets:
+    """:class:`AgentTargets` from the per-cell targets and masks of
+    :func:`~t3fast.training.world_model.motion_targets.agent_motion` and the tracker's
+    ``velocity`` ``[B, 4, H, W]`` (tracked cells: where it is not 0)."""
+    tracked = (velocity != 0).any(1)  # [B, H, W]
+    cells = torch.where(tracked, owner, -1)
+    seen = (moving | (static & covered[:, None])) & tracked[:, None]  # whose target is known
+    agents = int(owner.max()) + 1 if owner.numel() else 0
+    motion, count = agent_means(target, cells, seen, agents)
+    return AgentTargets(cells, count > 0, motion)
+
+
+def agent_errors(displacements: Tensor, targets: AgentTargets, min_flow: float = 0.5) -> tuple[Tensor, Tensor, Tensor]:
+    """Per agent and step, the L1 between the mean forward ``displacements`` ``[B, S, 2, H, W]``
+    over its cells and its true mean motion (``targets``) -> (errors ``[B, S, A]``, which agents
+    moved at least ``min_flow`` cells, which were seen and did not; bool ``[B, S, A]``)."""
+    b, s, _, h, w = displacements.shape
+    visible, motion = targets.visible[:, :s], targets.motion[:, :s]
+    owner = targets.cells.clamp(min=0).flatten(1)[:, None].expand(-1, s, -1)
+    seen = (targets.cells[:, None] >= 0) & visible.gather(2, owner).view(b, s, h, w)
+    predicted, _ = agent_means(displacements, targets.cells, seen, motion.shape[2])
+    error = (predicted - motion).abs().sum(-1)
+    is_moving = visible & (motion.norm(dim=-1) >= min_flow)
+    return error, is_moving, visible & ~is_moving
+
+
+def flow_terms(displacements: Tensor, targets: AgentTargets, min_flow: float = 0.5) -> tuple[Tensor, Tensor]:
+    """``flow_moving`` and ``flow_parked`` of the module doc (see :func:`agent_errors`)."""
+    error, is_moving, is_parked = agent_errors(displacements, targets, min_flow)
+    return (error * is_moving).sum() / is_moving.sum().clamp(min=1), (error * is_parked).sum() / is_parked.sum().clamp(
+        min=1)
+
+
 def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, min_flow: float = 0.5,
                 plan: PlanBatch | None = None) -> tuple[Tensor, dict[str, float]]:
     """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc); an
@@ -74,20 +122,11 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
     target_disp, moving, static, agents, covered, owner = agent_motion(batch.boxes, batch.box_valid,
                                                                        tuple(pred.shape[-2:]), min_flow=min_flow)
     target_disp, moving, static, agents = (m[:, :steps] for m in (target_disp, moving, static, agents))
-    tracked = (batch.velocity != 0).any(1, keepdim=True)  # [B, 1, H, W]
-    elsewhere = static & ~covered[:, None] & ~tracked
     weight = 1.0 + loss.agent_weight * agents.float()
     latent = _latent_error(pred, target, weight, loss.gamma)
-    # per agent: the cells the render moves it by (tracked, under its box) whose target is known
-    seen = (moving | (static & covered[:, None])) & tracked
-    n_agents = batch.boxes.shape[2]
-    pred_mean, count = agent_means(displacements, owner, seen, n_agents)
-    true_mean, _ = agent_means(target_disp, owner, seen, n_agents)
-    error = (pred_mean - true_mean).abs().sum(-1)  # [B, S, A]
-    is_moving = (count > 0) & (true_mean.norm(dim=-1) >= min_flow)
-    is_parked = (count > 0) & ~is_moving
-    flow_moving = (error * is_moving).sum() / is_moving.sum().clamp(min=1)
-    flow_parked = (error * is_parked).sum() / is_parked.sum().clamp(min=1)
+    flow_moving, flow_parked = flow_terms(
+        displacements, agent_targets(target_disp, moving, static, covered, owner, batch.velocity), min_flow)
+    elsewhere = static & ~covered[:, None] & ~(batch.velocity != 0).any(1, keepdim=True)
     flow_static = (displacements.abs().sum(2) * elsewhere).sum() / elsewhere.sum().clamp(min=1)
     flow_term = flow_moving + flow_parked + loss.static_flow_weight * flow_static
     total = latent + loss.flow_weight * flow_term

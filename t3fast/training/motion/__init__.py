@@ -1,0 +1,1 @@
+"""Training the flow forecaster's motion head on its own, on many cached windows."""

@@ -1,0 +1,171 @@
+"""What the motion head reads and learns from, for many windows, kept on disk.
+
+The motion head of the flow forecaster (:mod:`t3fast.models.motion_head`) reads the agents'
+velocities measured by the tracker in the last three past frames, the present xy plane and the
+previous one (moved into the present ego frame); it learns from the agents' boxes. The planes
+are the route planner's (:class:`~t3fast.training.planner.plan_cache.PlanCache`: two encodings
+a window, shared with ``train-planner``); this cache adds per scene the velocities, measured as
+at inference (:meth:`T3Former.agent_velocity`), and each agent's true motion over the cells the
+render moves it by (:class:`~t3fast.training.world_model.motion_loss.AgentTargets`, made once
+from the boxes: a batch's targets cost more than the head's step). Both come from labels only,
+so the folder's name hashes the split's first scene and the plane's size, not the encoder.
+Files are written atomically; building is resumable and shows progress.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+from torch.utils.data import Dataset
+from tqdm import tqdm
+
+from t3fast.data.sample import PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.models.ego_motion import planar_poses
+from t3fast.models.world_model import T3Former
+from t3fast.training.planner.plan_cache import PlanCache
+from t3fast.training.world_model.latent_cache import world_digest
+from t3fast.training.world_model.motion_loss import AgentTargets, agent_targets
+from t3fast.training.world_model.motion_targets import agent_motion
+
+MOTION_CACHE_FORMAT = 2  # 2: per-agent targets instead of boxes
+
+
+@dataclass
+class MotionWindows:
+    """Motion-head inputs and targets: ``present``, ``previous`` xy planes ``[B, C, H, W]``,
+    the tracker's ``velocity`` ``[B, 4, H, W]`` (plane cells per step) and the agents' true
+    motion ``targets`` (:class:`~t3fast.training.world_model.motion_loss.AgentTargets`, A
+    agents)."""
+
+    present: Tensor
+    previous: Tensor
+    velocity: Tensor
+    targets: AgentTargets
+
+    def to(self, device: torch.device | str) -> MotionWindows:
+        return self.map(lambda t: t.to(device))
+
+    def select(self, index: slice | Tensor) -> MotionWindows:
+        return self.map(lambda t: t[index])
+
+    def map(self, fn) -> MotionWindows:
+        t = self.targets
+        return MotionWindows(fn(self.present), fn(self.previous), fn(self.velocity),
+                             AgentTargets(fn(t.cells), fn(t.visible), fn(t.motion)))
+
+    def __len__(self) -> int:
+        return self.present.shape[0]
+
+
+def _pad_agents(x: Tensor, agents: int) -> Tensor:
+    """Per-agent targets ``[W, S, A, *]`` padded with agents that are never visible to ``agents``."""
+    return F.pad(x, [0, 0] * (x.dim() - 3) + [0, agents - x.shape[2]])
+
+
+class MotionCache(Dataset):
+    """The windows of a :class:`SyntheticDriving` split as the motion head reads them.
+
+    Args:
+        windows: the windows (``flip=False``; mirroring happens per batch).
+        model: an ego-aligned :class:`T3Former` with a tracker-prior flow forecaster.
+        cache_dir: parent folder of this cache (``motion-<world>-<split>-...``) and of the
+            planes' :class:`~t3fast.training.planner.plan_cache.PlanCache`.
+    """
+
+    def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
+        if not getattr(model.forecaster, "tracker_prior", False):
+            raise ValueError("the motion head corrects the tracker: the model needs a flow forecaster with "
+                             "tracker_prior=True")
+        self.windows, self.model = windows, model
+        self.planes = PlanCache(windows, model, cache_dir)
+        h, w = model.encoder.config.plane_shape[:2]
+        scenes = windows.scenes
+        key = (f"{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}-{h}x{w}"
+               f"-v{MOTION_CACHE_FORMAT}")
+        self.root = Path(cache_dir) / f"motion-{key}"
+        self._by_scene = self.planes._by_scene
+        self._data: dict[str, Tensor] | None = None
+
+    def path(self, scene: int) -> Path:
+        return self.root / f"scene{scene:05d}.pt"
+
+    def missing(self) -> list[int]:
+        """Scenes not yet in this cache (the planes' cache keeps its own list)."""
+        return [s for s in self._by_scene if not self.path(s).is_file()]
+
+    @torch.no_grad()
+    def build(self, progress: bool = True) -> int:
+        """Cache every scene not yet cached, and the planes; returns how many scenes were cached here."""
+        self.planes.build(progress)
+        todo = self.missing()
+        for scene in tqdm(todo, desc="measure agent motion", unit="scene", disable=not progress or not todo):
+            samples = [self.windows[i] for i in self._by_scene[scene]]
+            velocity = torch.cat([self._velocity(s) for s in samples]).cpu()  # [W, 4, H, W]
+            targets = scene_targets([s.boxes for s in samples], [s.box_valid for s in samples], velocity)
+            save_checkpoint(targets, self.path(scene))
+        return len(todo)
+
+    def _velocity(self, sample) -> Tensor:
+        """The tracker's velocities ``[1, 4, H, W]`` of a window, exactly as at inference."""
+        device = next(self.model.parameters()).device
+        recent = slice(PRESENT - 2, PRESENT + 1)
+        poses = planar_poses(sample.ego_poses[None], PRESENT)[:, recent].to(device)
+        return self.model.agent_velocity(sample.occ[None, recent].to(device), poses)
+
+    def _load(self) -> dict[str, Tensor]:
+        if self._data is None:
+            missing = self.missing()
+            if missing:
+                raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
+            parts = [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
+            agents = max(p["motion"].shape[2] for p in parts)
+            self._data = {
+                "velocity": torch.cat([p["velocity"] for p in parts]),
+                "cells": torch.cat([p["cells"] for p in parts]),
+                "visible": torch.cat([_pad_agents(p["visible"], agents) for p in parts]),
+                "motion": torch.cat([_pad_agents(p["motion"], agents) for p in parts]),
+            }
+        return self._data
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, index: int) -> tuple[Tensor, ...]:
+        """(xy planes float16 ``[2, C, H, W]`` (previous, present), velocity ``[4, H, W]``, the
+        :class:`AgentTargets` fields ``cells`` int16 ``[H, W]``, ``visible`` ``[S, A]``,
+        ``motion`` ``[S, A, 2]``; A padded to the split's largest)."""
+        data = self._load()
+        return (self.planes[index][0], *(data[k][index] for k in ("velocity", "cells", "visible", "motion")))
+
+    def all(self) -> MotionWindows:
+        """Every window at once."""
+        return collate_motion([self[i] for i in range(len(self))])
+
+
+def scene_targets(boxes: list[Tensor], box_valid: list[Tensor], velocity: Tensor) -> dict[str, Tensor]:
+    """What a scene's file holds: the windows' velocities ``[W, 4, H, W]`` and their agents'
+    :class:`AgentTargets` (``cells`` as int16) from each window's ``boxes`` ``[11, A, 7]`` (present
+    frame) and ``box_valid`` ``[11, A]``."""
+    agents = max(b.shape[1] for b in boxes)
+    valid = torch.stack([F.pad(v, [0, agents - v.shape[1]]) for v in box_valid])
+    boxes = torch.stack([F.pad(b, [0, 0, 0, agents - b.shape[1]]) for b in boxes])
+    target, moving, static, _, covered, owner = agent_motion(boxes, valid, tuple(velocity.shape[-2:]))
+    t = agent_targets(target, moving, static, covered, owner, velocity)
+    return {"velocity": velocity, "cells": t.cells.short(), "visible": _pad_agents(t.visible, agents),
+            "motion": _pad_agents(t.motion, agents)}
+
+
+def collate_motion(items: list[tuple[Tensor, ...]]) -> MotionWindows:
+    """Stack cached windows (planes back to float32), trimming the agents no window's cell belongs to."""
+    xy = torch.stack([it[0] for it in items]).float()
+    cells = torch.stack([it[2] for it in items]).long()
+    agents = max(int(cells.max()) + 1, 1)
+    targets = AgentTargets(cells, torch.stack([it[3] for it in items])[:, :, :agents],
+                           torch.stack([it[4] for it in items])[:, :, :agents])
+    return MotionWindows(xy[:, 1], xy[:, 0], torch.stack([it[1] for it in items]), targets)

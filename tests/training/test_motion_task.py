@@ -1,0 +1,171 @@
+"""The motion head trained on its own: its cache holds what inference measures and what the
+world-model loss compares, mirroring keeps the errors, it learns, and ``train-motion`` -> eval
+works end to end."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from t3fast.commands.main import main
+from t3fast.data.sample import PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.errors import ConfigError
+from t3fast.io.checkpoint import load_checkpoint
+from t3fast.models.ego_motion import planar_poses
+from t3fast.models.triplane import Triplane
+from t3fast.pretrained import load_world_model
+from t3fast.training.configs import MotionConfig
+from t3fast.training.motion.motion_cache import MotionCache, MotionWindows
+from t3fast.training.motion.task import MotionTask, mirror_left_right, tracker_motion
+from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, agent_targets, flow_terms
+from t3fast.training.world_model.motion_targets import agent_motion
+
+TINY_MOTION = ["data.train_scenes=1", "data.val_scenes=1", "data.frames_per_scene=14", "data.stride=1",
+               "train.batch_size=2", "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+
+
+@pytest.fixture(scope="module")
+def cached(world_ckpt, tmp_path_factory):
+    """A tiny world model and the motion cache of one scene's two windows."""
+    model = load_world_model(world_ckpt)
+    windows = SyntheticDriving("train", 1, 13, stride=2)
+    cache = MotionCache(windows, model, tmp_path_factory.mktemp("motion-cache"))
+    assert cache.build(progress=False) == 1 and cache.build(progress=False) == 0  # resumable: nothing left
+    return model, windows, cache
+
+
+def test_the_cache_holds_the_velocities_inference_measures_and_the_losses_targets(cached):
+    model, windows, cache = cached
+    batch = cache.all()
+    assert len(cache) == len(windows) == 2 and batch.velocity.shape[0] == 2
+    for i in range(len(windows)):
+        sample = windows[i]
+        poses = planar_poses(sample.ego_poses[None], PRESENT)[:, : PRESENT + 1]
+        velocity = model.agent_velocity(sample.occ[None, : PRESENT + 1], poses)
+        torch.testing.assert_close(batch.velocity[i : i + 1], velocity)
+        planes = model.encode_history(sample.occ[None, : PRESENT + 1], poses).xy[0]
+        torch.testing.assert_close(batch.present[i], planes[-1], atol=2e-3, rtol=0)
+        target, moving, static, _, covered, owner = agent_motion(sample.boxes[None], sample.box_valid[None])
+        expected = agent_targets(target, moving, static, covered, owner, velocity)
+        a = expected.motion.shape[2]
+        assert torch.equal(batch.targets.cells[i], expected.cells[0])
+        assert torch.equal(batch.targets.visible[i, :, :a], expected.visible[0])
+        assert not batch.targets.visible[i, :, a:].any()  # padding is never seen
+        torch.testing.assert_close(batch.targets.motion[i, :, :a], expected.motion[0])
+    assert batch.targets.visible.any(), "the scene's windows should hold tracked agents"
+
+
+def test_the_heads_forward_is_the_forecasters_motion(cached):
+    model, _, cache = cached
+    batch = cache.all()
+    torch.nn.init.normal_(model.forecaster.motion_head.head[-1].weight, std=0.1)  # a head that corrects
+    alone = model(None, None, motion_from=(batch.velocity, batch.present, batch.previous))
+    past = Triplane(torch.stack([batch.previous, batch.previous, batch.previous, batch.previous, batch.present], 1),
+                    None, None)
+    _, displacements, _ = model.forecaster.predict(past, batch.velocity)
+    torch.testing.assert_close(alone, displacements)
+    assert not torch.allclose(alone, tracker_motion(batch.velocity, alone.shape[1]))
+
+
+def test_a_missing_scene_is_named(world_ckpt, tmp_path):
+    cache = MotionCache(SyntheticDriving("train", 1, 12), load_world_model(world_ckpt), tmp_path)
+    with pytest.raises(FileNotFoundError, match="1 scenes are not cached"):
+        cache.all()
+
+
+def _random_windows(seed: int = 0) -> tuple[MotionWindows, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    cells = torch.randint(-1, 3, (2, 6, 7), generator=g)
+    targets = AgentTargets(cells, torch.rand(2, 4, 3, generator=g) > 0.2, torch.randn(2, 4, 3, 2, generator=g) * 2)
+    velocity = torch.randn(2, 4, 6, 7, generator=g) * (cells >= 0)[:, None]
+    batch = MotionWindows(torch.randn(2, 8, 6, 7, generator=g), torch.randn(2, 8, 6, 7, generator=g), velocity, targets)
+    return batch, torch.randn(2, 4, 2, 6, 7, generator=g)
+
+
+def test_mirroring_keeps_every_agents_error_and_twice_is_the_identity():
+    batch, displacements = _random_windows()
+    mirrored = mirror_left_right(batch)
+    flipped = displacements.flip(-1) * torch.tensor([1.0, -1.0]).view(1, 1, 2, 1, 1)
+    for a, b in zip(agent_errors(displacements, batch.targets), agent_errors(flipped, mirrored.targets)):
+        torch.testing.assert_close(a, b)
+    torch.testing.assert_close(tracker_motion(mirrored.velocity, 4),
+                               tracker_motion(batch.velocity, 4).flip(-1) * torch.tensor([1.0, -1.0]).view(1, 1, 2, 1, 1))
+    twice = mirror_left_right(mirrored)
+    for a, b in ((twice.present, batch.present), (twice.velocity, batch.velocity), (twice.targets.cells,
+                 batch.targets.cells), (twice.targets.motion, batch.targets.motion)):
+        assert torch.equal(a, b)
+
+
+def test_an_agents_error_is_its_mean_displacement_against_its_motion():
+    cells = torch.tensor([[[0, 0, -1], [1, -1, -1]]])  # agent 0 on two cells, agent 1 on one
+    targets = AgentTargets(cells, torch.tensor([[[True, True]]]), torch.tensor([[[[2.0, 0.0], [0.1, 0.1]]]]))
+    displacements = torch.zeros(1, 1, 2, 2, 3)
+    displacements[0, 0, 0, 0, :2] = torch.tensor([1.0, 2.0])  # agent 0 moves 1.5 cells on average along x
+    error, moving, parked = agent_errors(displacements, targets)
+    torch.testing.assert_close(error, torch.tensor([[[0.5, 0.2]]]))
+    assert moving.tolist() == [[[True, False]]] and parked.tolist() == [[[False, True]]]
+    torch.testing.assert_close(torch.stack(flow_terms(displacements, targets)), torch.tensor([0.5, 0.2]))
+
+
+def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
+    """Steps on the cached windows bring the agents' error clearly below the tracker's: the path
+    from the cached inputs to the per-agent loss carries gradients to the head alone."""
+    _, _, cache = cached
+    torch.manual_seed(0)
+    task = MotionTask(MotionConfig(world_model=str(world_ckpt)))
+    model = task.build_model().train()
+    batch = cache.all()
+    tracker = sum(flow_terms(tracker_motion(batch.velocity, 6), batch.targets))
+    opt = torch.optim.Adam(model.forecaster.motion_head.parameters(), lr=3e-3)
+    for _ in range(200):
+        loss, _ = task.training_step(model, batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    final = sum(flow_terms(model(None, None, motion_from=(batch.velocity, batch.present, batch.previous)),
+                           batch.targets))
+    assert final < 0.8 * tracker
+    assert all(p.grad is None for n, p in model.named_parameters() if "motion_head" not in n)
+
+
+def test_train_motion_retrains_only_the_motion_head_and_its_checkpoints_are_world_models(world_ckpt, tmp_path, capsys):
+    out = tmp_path / "motion"
+    args = ["train-motion", "--wm", str(world_ckpt), f"data.cache_dir={tmp_path / 'cache'}",
+            f"train.out_dir={out}", *TINY_MOTION]
+    assert main([*args, "train.steps=2"]) == 0
+    assert main([*args, "train.steps=3", "--resume"]) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 3
+    events = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    evals = [e for e in events if e["event"] == "eval"]
+    assert [e["step"] for e in evals] == [0, 2, 3]
+    assert evals[0]["values"]["ratio_moving"] == pytest.approx(1.0)  # new: the tracker
+    assert {"head_moving_3s", "tracker_parked", "ratio_parked", "score"} <= set(evals[-1]["values"])
+    before, after = load_world_model(world_ckpt).state_dict(), load_world_model(out / "last.pt").state_dict()
+    kept = [k for k in before if "motion_head" not in k]
+    assert kept and all(torch.equal(before[k], after[k]) for k in kept)
+    capsys.readouterr()
+    assert main(["eval", str(out / "last.pt"), "--scenes", "1", "--stride", "29", "--out", str(tmp_path / "ev")]) == 0
+    assert "t3former_gt_ego" in json.loads((tmp_path / "ev" / "metrics.json").read_text())
+
+
+def test_train_motion_refuses_a_world_model_without_a_motion_head(world_ckpt, tmp_path):
+    state = load_checkpoint(world_ckpt)
+    state["config"]["task"]["model"]["tracker_prior"] = False
+    torch.save(state, tmp_path / "no-prior.pt")
+    with pytest.raises(ConfigError, match="no motion head to train"):
+        MotionTask(MotionConfig(world_model=str(tmp_path / "no-prior.pt")))
+
+
+def test_the_motion_input_needs_a_tracker_prior(world_ckpt, tmp_path):
+    model = load_world_model(world_ckpt)
+    model.forecaster.tracker_prior = False
+    with pytest.raises(ValueError, match="tracker_prior"):
+        model(None, None, motion_from=(torch.zeros(1, 4, 2, 2),) * 3)
+
+
+def test_a_negative_parked_weight_is_refused():
+    with pytest.raises(ConfigError, match="parked_weight"):
+        MotionConfig(parked_weight=-1.0)

@@ -141,12 +141,14 @@ PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig | Mo
         train=TrainConfig(steps=4000, batch_size=32, lr=1e-3, warmup_steps=100, log_every=50, eval_every=250,
                           eval_at_start=True, ckpt_every=250, out_dir="runs/plan-small"),
     ),
-    # a new motion head for the shipped world model, trained on its own on 10x the scenes of
-    # its world-model run
+    # a new motion head for the shipped world model, trained on its own on 10x the scenes of its
+    # world-model run (79 min here): validation per-agent error 0.83x the tracker's for moving
+    # agents and 0.06x for parked ones, against 0.96x and 0.34x for the head trained with the
+    # forecaster on 30 scenes
     "motion-small": lambda: MotionConfig(
         world_model="wm-small", data=PlanDataConfig(train_scenes=300, val_scenes=40),
-        train=TrainConfig(steps=6000, batch_size=16, lr=1e-3, warmup_steps=200, log_every=50, eval_every=500,
-                          eval_at_start=True, ckpt_every=250, out_dir="runs/motion-small"),
+        train=TrainConfig(steps=4800, batch_size=32, lr=1e-3, warmup_steps=200, log_every=50, eval_every=400,
+                          eval_at_start=True, ckpt_every=200, out_dir="runs/motion-small"),
     ),
     # full 6-step rollouts
     "wm-paper": lambda: Stage2Config(

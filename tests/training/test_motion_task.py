@@ -88,11 +88,11 @@ def _random_windows(seed: int = 0) -> tuple[MotionWindows, torch.Tensor]:
 def test_mirroring_keeps_every_agents_error_and_twice_is_the_identity():
     batch, displacements = _random_windows()
     mirrored = mirror_left_right(batch)
-    flipped = displacements.flip(-1) * torch.tensor([1.0, -1.0]).view(1, 1, 2, 1, 1)
+    sign = torch.tensor([1.0, -1.0]).view(1, 1, 2, 1, 1)
+    flipped = displacements.flip(-1) * sign
     for a, b in zip(agent_errors(displacements, batch.targets), agent_errors(flipped, mirrored.targets)):
         torch.testing.assert_close(a, b)
-    torch.testing.assert_close(tracker_motion(mirrored.velocity, 4),
-                               tracker_motion(batch.velocity, 4).flip(-1) * torch.tensor([1.0, -1.0]).view(1, 1, 2, 1, 1))
+    torch.testing.assert_close(tracker_motion(mirrored.velocity, 4), tracker_motion(batch.velocity, 4).flip(-1) * sign)
     twice = mirror_left_right(mirrored)
     for a, b in ((twice.present, batch.present), (twice.velocity, batch.velocity), (twice.targets.cells,
                  batch.targets.cells), (twice.targets.motion, batch.targets.motion)):

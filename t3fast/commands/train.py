@@ -24,19 +24,14 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     world.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=100 loss.rollout_steps=6")
     world.set_defaults(func=_train_wm)
 
-    plan = sub.add_parser("train-planner", help="retrain a world model's route planner on its own, on many windows")
-    plan.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
-    plan.add_argument("--wm", help="the world model whose planner is retrained (overrides world_model)")
-    _add_run_flags(plan)
-    plan.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
-    plan.set_defaults(func=_train_planner)
-
-    motion = sub.add_parser("train-motion", help="retrain a world model's motion head on its own, on many windows")
-    motion.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
-    motion.add_argument("--wm", help="the world model whose motion head is retrained (overrides world_model)")
-    _add_run_flags(motion)
-    motion.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
-    motion.set_defaults(func=_train_motion)
+    for name, part, func in (("train-planner", "route planner", _train_planner),
+                             ("train-motion", "motion head", _train_motion)):
+        one = sub.add_parser(name, help=f"retrain a world model's {part} on its own, on many windows")
+        one.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
+        one.add_argument("--wm", help=f"the world model whose {part} is retrained (overrides world_model)")
+        _add_run_flags(one)
+        one.add_argument("overrides", nargs="*", help="dotted overrides, e.g. train.steps=1000 data.train_scenes=100")
+        one.set_defaults(func=func)
 
 
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
@@ -119,15 +114,18 @@ def _train_planner(args: argparse.Namespace) -> int:
     from t3fast.training.configs import PlannerConfig
     from t3fast.training.planner.task import PlannerTask
 
-    overrides = _overrides(args) + ([f"world_model={args.wm}"] if args.wm else [])
-    task = PlannerTask(_config(PlannerConfig, "plan", args.config, overrides))
-    return _fit(task, task.cfg, ("planner",), f"route planner {args.config}")
+    return _retrain_part(args, PlannerTask, PlannerConfig, "plan", ("planner",), "route planner")
 
 
 def _train_motion(args: argparse.Namespace) -> int:
     from t3fast.training.configs import MotionConfig
     from t3fast.training.motion.task import MotionTask
 
+    return _retrain_part(args, MotionTask, MotionConfig, "motion", ("forecaster",), "motion head")
+
+
+def _retrain_part(args: argparse.Namespace, task_cls, cfg_cls, stage: str, parts: tuple[str, ...], what: str) -> int:
+    """A part of a trained world model (``--wm``) retrained on its own by ``task_cls``."""
     overrides = _overrides(args) + ([f"world_model={args.wm}"] if args.wm else [])
-    task = MotionTask(_config(MotionConfig, "motion", args.config, overrides))
-    return _fit(task, task.cfg, ("forecaster",), f"motion head {args.config}")
+    task = task_cls(_config(cfg_cls, stage, args.config, overrides))
+    return _fit(task, task.cfg, parts, f"{what} {args.config}")

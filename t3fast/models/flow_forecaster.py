@@ -107,6 +107,13 @@ def _step_numbers(steps: int, like: Tensor) -> Tensor:
     return torch.arange(1, steps + 1, device=like.device, dtype=like.dtype).view(1, -1, 1, 1, 1)
 
 
+def tracker_motion(velocity: Tensor, steps: int) -> Tensor:
+    """What the motion head corrects: step ``k``'s displacement ``(k + 1)`` x the tracker's
+    blended velocity (:func:`~t3fast.models.agent_velocity.blended_velocity`) of the velocities
+    ``[B, 4, H, W]``, ``[B, steps, 2, H, W]``."""
+    return blended_velocity(velocity).unsqueeze(1) * _step_numbers(steps, velocity)
+
+
 def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
     """``present`` ``[B, C, H, W]`` with each cell's content moved by its forward
     ``displacement`` ``[B, 2, H, W]`` (plane cells); cells that moving content leaves and none

@@ -15,11 +15,12 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
+from t3fast.models.flow_forecaster import tracker_motion
 from t3fast.models.triplane import Triplane
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import MotionConfig
 from t3fast.training.motion.motion_cache import MotionCache, MotionWindows
-from t3fast.training.motion.task import MotionTask, mirror_left_right, tracker_motion
+from t3fast.training.motion.task import MotionTask, mirror_left_right
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, agent_targets, flow_terms
 from t3fast.training.world_model.motion_targets import agent_motion
 

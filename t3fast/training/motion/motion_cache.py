@@ -20,15 +20,14 @@ from pathlib import Path
 import torch
 from torch import Tensor
 from torch.nn import functional as F
-from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.io.checkpoint import save_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
-from t3fast.training.planner.plan_cache import PlanCache
+from t3fast.training.planner.plan_cache import PlanCache, SceneFiles
 from t3fast.training.world_model.latent_cache import world_digest
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_targets
 from t3fast.training.world_model.motion_targets import agent_motion
@@ -68,7 +67,7 @@ def _pad_agents(x: Tensor, agents: int) -> Tensor:
     return F.pad(x, [0, 0] * (x.dim() - 3) + [0, agents - x.shape[2]])
 
 
-class MotionCache(Dataset):
+class MotionCache(SceneFiles):
     """The windows of a :class:`SyntheticDriving` split as the motion head reads them.
 
     Args:
@@ -82,22 +81,14 @@ class MotionCache(Dataset):
         if not getattr(model.forecaster, "tracker_prior", False):
             raise ValueError("the motion head corrects the tracker: the model needs a flow forecaster with "
                              "tracker_prior=True")
-        self.windows, self.model = windows, model
+        self.model = model
         self.planes = PlanCache(windows, model, cache_dir)
         h, w = model.encoder.config.plane_shape[:2]
         scenes = windows.scenes
         key = (f"{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}-{h}x{w}"
                f"-v{MOTION_CACHE_FORMAT}")
-        self.root = Path(cache_dir) / f"motion-{key}"
-        self._by_scene = self.planes._by_scene
+        super().__init__(windows, Path(cache_dir) / f"motion-{key}")
         self._data: dict[str, Tensor] | None = None
-
-    def path(self, scene: int) -> Path:
-        return self.root / f"scene{scene:05d}.pt"
-
-    def missing(self) -> list[int]:
-        """Scenes not yet in this cache (the planes' cache keeps its own list)."""
-        return [s for s in self._by_scene if not self.path(s).is_file()]
 
     @torch.no_grad()
     def build(self, progress: bool = True) -> int:
@@ -105,7 +96,7 @@ class MotionCache(Dataset):
         self.planes.build(progress)
         todo = self.missing()
         for scene in tqdm(todo, desc="measure agent motion", unit="scene", disable=not progress or not todo):
-            samples = [self.windows[i] for i in self._by_scene[scene]]
+            samples = self.scene_windows(scene)
             velocity = torch.cat([self._velocity(s) for s in samples]).cpu()  # [W, 4, H, W]
             targets = scene_targets([s.boxes for s in samples], [s.box_valid for s in samples], velocity)
             save_checkpoint(targets, self.path(scene))
@@ -120,10 +111,7 @@ class MotionCache(Dataset):
 
     def _load(self) -> dict[str, Tensor]:
         if self._data is None:
-            missing = self.missing()
-            if missing:
-                raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
-            parts = [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
+            parts = self.read_scenes()
             agents = max(p["motion"].shape[2] for p in parts)
             self._data = {
                 "velocity": torch.cat([p["velocity"] for p in parts]),
@@ -132,9 +120,6 @@ class MotionCache(Dataset):
                 "motion": torch.cat([_pad_agents(p["motion"], agents) for p in parts]),
             }
         return self._data
-
-    def __len__(self) -> int:
-        return len(self.windows)
 
     def __getitem__(self, index: int) -> tuple[Tensor, ...]:
         """(xy planes float16 ``[2, C, H, W]`` (previous, present), velocity ``[4, H, W]``, the

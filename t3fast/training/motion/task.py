@@ -24,8 +24,9 @@ from torch import Tensor, nn
 
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
+from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
-from t3fast.models.agent_velocity import blended_velocity
+from t3fast.models.flow_forecaster import tracker_motion
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import MotionConfig
@@ -34,7 +35,7 @@ from t3fast.training.motion.motion_cache import MotionCache, MotionWindows, coll
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, flow_terms
 
 VAL_CHUNK = 50  # validation windows per forward pass
-HORIZONS = {"1s": 1, "2s": 3, "3s": 5}  # future step index of each horizon (2 Hz)
+HORIZONS = {name: steps - 1 for name, steps in STEPS_AT.items()}  # future step index of each horizon
 
 
 def mirror_left_right(batch: MotionWindows) -> MotionWindows:
@@ -44,13 +45,6 @@ def mirror_left_right(batch: MotionWindows) -> MotionWindows:
     t = batch.targets
     targets = AgentTargets(t.cells.flip(-1), t.visible, t.motion * t.motion.new_tensor([1.0, -1.0]))
     return MotionWindows(batch.present.flip(-1), batch.previous.flip(-1), batch.velocity.flip(-1) * sign, targets)
-
-
-def tracker_motion(velocity: Tensor, steps: int) -> Tensor:
-    """What the motion head corrects: step ``k``'s displacement ``(k + 1)`` x the tracker's
-    blended velocity, ``[B, steps, 2, H, W]``."""
-    k = torch.arange(1, steps + 1, dtype=velocity.dtype, device=velocity.device).view(1, -1, 1, 1, 1)
-    return blended_velocity(velocity).unsqueeze(1) * k
 
 
 class MotionTask:

@@ -56,7 +56,39 @@ class PlanWindows:
         return self.present, self.previous, self.past_actions, self.command
 
 
-class PlanCache(Dataset):
+class SceneFiles(Dataset):
+    """The windows of a split cached as one file per scene in ``root``: which windows each scene
+    holds, where its file is, which are missing, and reading them all back."""
+
+    def __init__(self, windows: SyntheticDriving, root: Path):
+        self.windows, self.root = windows, root
+        self._by_scene: dict[int, list[int]] = {}
+        for index in range(len(windows)):
+            self._by_scene.setdefault(windows.locate(index)[0], []).append(index)
+
+    def path(self, scene: int) -> Path:
+        return self.root / f"scene{scene:05d}.pt"
+
+    def missing(self) -> list[int]:
+        """Scenes not yet in the cache."""
+        return [s for s in self._by_scene if not self.path(s).is_file()]
+
+    def scene_windows(self, scene: int) -> list:
+        """The windows (samples) of ``scene``, in order."""
+        return [self.windows[i] for i in self._by_scene[scene]]
+
+    def read_scenes(self) -> list[dict[str, Tensor]]:
+        """Every scene's file, in scene order; refuses a cache that misses some."""
+        missing = self.missing()
+        if missing:
+            raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
+        return [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+
+class PlanCache(SceneFiles):
     """The windows of a :class:`SyntheticDriving` split as the route planner reads them.
 
     Args:
@@ -72,23 +104,13 @@ class PlanCache(Dataset):
             raise ValueError("PlanCache stores windows as generated: pass flip=False")
         if not model.ego_aligned:
             raise ValueError("the route planner reads ego-aligned planes: the model needs ego_aligned=True")
-        self.windows, self.model, self.planes = windows, model, planes
+        self.model, self.planes = model, planes
         scenes = windows.scenes
         source = encoder_digest(model.encoder) if planes else "motion"
         key = (f"{source}-{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f"
                f"-stride{windows.stride}-v{PLAN_CACHE_FORMAT}")
-        self.root = Path(cache_dir) / f"plan-{key}"
-        self._by_scene: dict[int, list[int]] = {}
-        for index in range(len(windows)):
-            self._by_scene.setdefault(windows.locate(index)[0], []).append(index)
+        super().__init__(windows, Path(cache_dir) / f"plan-{key}")
         self._data: dict[str, Tensor] | None = None
-
-    def path(self, scene: int) -> Path:
-        return self.root / f"scene{scene:05d}.pt"
-
-    def missing(self) -> list[int]:
-        """Scenes not yet in the cache."""
-        return [s for s in self._by_scene if not self.path(s).is_file()]
 
     @torch.no_grad()
     def build(self, progress: bool = True) -> int:
@@ -97,7 +119,7 @@ class PlanCache(Dataset):
         device = next(self.model.parameters()).device
         desc = "encode planner windows" if self.planes else "planner windows"
         for scene in tqdm(todo, desc=desc, unit="scene", disable=not progress or not todo):
-            samples = [self.windows[i] for i in self._by_scene[scene]]
+            samples = self.scene_windows(scene)
             xy = self._encode(samples, device) if self.planes else torch.zeros(len(samples), 2, 0, 1, 1)
             save_checkpoint(
                 {
@@ -119,15 +141,9 @@ class PlanCache(Dataset):
 
     def _load(self) -> dict[str, Tensor]:
         if self._data is None:
-            missing = self.missing()
-            if missing:
-                raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
-            parts = [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
+            parts = self.read_scenes()
             self._data = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
         return self._data
-
-    def __len__(self) -> int:
-        return len(self.windows)
 
     def __getitem__(self, index: int) -> tuple[Tensor, Tensor, Tensor]:
         """(xy planes float16 ``[2, C, H, W]`` (previous, present), past ``[4, 2]``, future ``[6, 2]``)."""

@@ -101,8 +101,9 @@ def agent_errors(displacements: Tensor, targets: AgentTargets, min_flow: float =
 def flow_terms(displacements: Tensor, targets: AgentTargets, min_flow: float = 0.5) -> tuple[Tensor, Tensor]:
     """``flow_moving`` and ``flow_parked`` of the module doc (see :func:`agent_errors`)."""
     error, is_moving, is_parked = agent_errors(displacements, targets, min_flow)
-    return (error * is_moving).sum() / is_moving.sum().clamp(min=1), (error * is_parked).sum() / is_parked.sum().clamp(
-        min=1)
+    moving = (error * is_moving).sum() / is_moving.sum().clamp(min=1)
+    parked = (error * is_parked).sum() / is_parked.sum().clamp(min=1)
+    return moving, parked
 
 
 def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, min_flow: float = 0.5,

@@ -29,8 +29,8 @@ def rollout_loss(
     """
     history = planes.map(lambda p: p[:, : PRESENT + 1 + first])  # the forecaster reads the last 5
     actions = torch.cat([past_actions, future_actions[:, :first]], dim=1)
+    core = model.module if hasattr(model, "module") else model
     if loss.pushforward and first:
-        core = model.module if hasattr(model, "module") else model
         history = planes.map(lambda p: p[:, : PRESENT + 1])
         with torch.no_grad():
             frames, _, planned, _ = core.rollout(history, past_actions, first)
@@ -52,6 +52,8 @@ def rollout_loss(
         occ_loss = occ_loss + occupancy_loss(logits[j], queries[j][1], lovasz_weight=loss.lovasz_weight)[0]
     act = (predicted - future_actions[:, first : first + steps]).square().sum(-1).mean()
     tri, occ_loss = tri / steps, occ_loss / steps
-    total = tri + loss.xi * occ_loss + loss.action_weight * act
+    total = tri + loss.xi * occ_loss
+    if any(p.requires_grad for p in core.planner.parameters()):  # a frozen planner's error is only logged
+        total = total + loss.action_weight * act
     parts = {"triplane": tri, "occupancy": occ_loss, "action": act}
     return total, {k: float(v.detach()) for k, v in parts.items()}

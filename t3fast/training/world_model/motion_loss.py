@@ -40,8 +40,9 @@ from t3fast.training.world_model.motion_targets import agent_motion
 from t3fast.training.world_model.plan_loss import PlanBatch, plan_error
 
 
-def _latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) -> Tensor:
-    """Weighted mean over cells of the channel-mean L1 + gamma L2; planes ``[B, S, C, H, W]``."""
+def latent_error(pred: Tensor, target: Tensor, weight: Tensor, gamma: float) -> Tensor:
+    """Mean over cells, weighted by ``weight`` ``[B, S, H, W]``, of the channel-mean L1 + gamma
+    L2; planes ``[B, S, C, H, W]``."""
     diff = pred - target
     err = diff.abs().mean(2) + gamma * diff.square().mean(2)
     return (weight * err).sum() / weight.sum()
@@ -124,7 +125,7 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
                                                                        tuple(pred.shape[-2:]), min_flow=min_flow)
     target_disp, moving, static, agents = (m[:, :steps] for m in (target_disp, moving, static, agents))
     weight = 1.0 + loss.agent_weight * agents.float()
-    latent = _latent_error(pred, target, weight, loss.gamma)
+    latent = latent_error(pred, target, weight, loss.gamma)
     flow_moving, flow_parked = flow_terms(
         displacements, agent_targets(target_disp, moving, static, covered, owner, batch.velocity), min_flow)
     elsewhere = static & ~covered[:, None] & ~(batch.velocity != 0).any(1, keepdim=True)
@@ -132,7 +133,7 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
     flow_term = flow_moving + flow_parked + loss.static_flow_weight * flow_static
     total = latent + loss.flow_weight * flow_term
     with torch.no_grad():
-        copy = _latent_error(present.expand_as(target), target, weight, loss.gamma)
+        copy = latent_error(present.expand_as(target), target, weight, loss.gamma)
     # the trainer logs ``total`` as ``loss``
     parts = {"latent": latent, "copy_latent": copy, "flow_moving": flow_moving, "flow_parked": flow_parked,
              "flow_static": flow_static}

@@ -21,6 +21,7 @@ from t3fast.pretrained import resolve
 from t3fast.training.configs import Stage2Config
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.triplane_cache import cached_scene_triplanes
+from t3fast.training.world_model.delta_loss import delta_rollout_loss
 from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatentCache, AlignedWindow, collate_aligned
 from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
@@ -116,11 +117,11 @@ class WorldModelTask:
             plan = plan_batch(batch, self.cfg.loss.command_dropout) if (
                 core.reads_command and self.cfg.planner_lr_scale > 0) else None
             flipped = random_flips(batch) if self.cfg.data.latent_flips else batch
+            if self.cfg.model.forecaster != "flow":
+                return delta_rollout_loss(model, flipped, self.cfg.loss, self._rollout_start())
             return motion_loss(model, flipped, self.cfg.loss, plan=plan)
         steps = self.cfg.loss.rollout_steps
-        if not 1 <= steps <= NUM_FUTURE:
-            raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")
-        first = int(torch.randint(0, NUM_FUTURE - steps + 1, ()))
+        first = self._rollout_start()
         occ = batch.occ
         if core.ego_aligned:
             frames = rollout_frames(first, steps, self.cfg.loss.pushforward)
@@ -128,6 +129,13 @@ class WorldModelTask:
         else:
             planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
         return rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, steps, self.cfg.loss)
+
+    def _rollout_start(self) -> int:
+        """A random future step for a rollout of ``loss.rollout_steps`` steps to start at."""
+        steps = self.cfg.loss.rollout_steps
+        if not 1 <= steps <= NUM_FUTURE:
+            raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")
+        return int(torch.randint(0, NUM_FUTURE - steps + 1, ()))
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """Avg mIoU (absent classes skipped), IoU and planning L2 of full rollouts on the val

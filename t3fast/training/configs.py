@@ -251,8 +251,14 @@ class MotionConfig:
     world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (a flow forecaster with tracker_prior)
     min_flow: float = 0.5  # plane cells an agent moves in a step to count as moving
     parked_weight: float = 1.0  # x the error of seen agents that did not move (a parked car must stand still)
+    # + precision_weight x mean over moving agents of 1 - exp(-d^2 / 2 s^2), s = precision_scale
+    # plane cells: an agent drawn more than its size off scores nothing, however far off it is
+    precision_weight: float = 0.0
+    precision_scale: float = 0.5
     data: PlanDataConfig = field(default_factory=PlanDataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def __post_init__(self) -> None:
-        _weights("", self, ("parked_weight", "min_flow"), "0 turns it off")
+        _weights("", self, ("parked_weight", "min_flow", "precision_weight"), "0 turns it off")
+        if not (math.isfinite(self.precision_scale) and self.precision_scale > 0):
+            raise ConfigError(f"precision_scale must be > 0 plane cells, got {self.precision_scale}")

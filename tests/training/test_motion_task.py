@@ -20,7 +20,7 @@ from t3fast.models.triplane import Triplane
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import MotionConfig
 from t3fast.training.motion.motion_cache import MotionCache, MotionWindows
-from t3fast.training.motion.task import MotionTask, mirror_left_right
+from t3fast.training.motion.task import MotionTask, mirror_left_right, motion_head_loss
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, agent_targets, flow_terms
 from t3fast.training.world_model.motion_targets import agent_motion
 
@@ -170,3 +170,23 @@ def test_the_motion_input_needs_a_tracker_prior(world_ckpt, tmp_path):
 def test_a_negative_parked_weight_is_refused():
     with pytest.raises(ConfigError, match="parked_weight"):
         MotionConfig(parked_weight=-1.0)
+
+
+
+def test_the_precision_term_is_zero_when_exact_and_its_weight_when_far_off():
+    batch, _ = _random_windows()
+    t = batch.targets
+    index = t.cells.clamp(min=0)[:, None, :, :, None].expand(-1, 4, -1, -1, 2)  # [B, S, H, W, 2]
+    exact = t.motion[:, :, None].expand(-1, -1, 6, -1, -1).gather(3, index).permute(0, 1, 4, 2, 3)
+    exact = exact * (t.cells >= 0)[:, None, None]
+    cfg = MotionConfig(precision_weight=2.0, precision_scale=0.5)
+    _, parts = motion_head_loss(exact, t, cfg)
+    assert parts["miss"] == pytest.approx(0.0, abs=1e-6) and parts["flow_moving"] == pytest.approx(0.0, abs=1e-5)
+    loss, parts = motion_head_loss(exact + 10.0, t, cfg)
+    assert parts["miss"] == pytest.approx(1.0)
+    assert float(loss) == pytest.approx(parts["flow_moving"] + parts["flow_parked"] + 2.0)
+
+
+def test_a_bad_precision_scale_is_refused():
+    with pytest.raises(ConfigError, match="precision_scale"):
+        MotionConfig(precision_scale=0.0)

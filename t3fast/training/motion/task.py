@@ -9,9 +9,11 @@ reads only the tracker's velocities and two encoded planes a window, so it can l
 times the scenes at the same cost. The loss is the flow term of the world model's loss
 (:func:`~t3fast.training.world_model.motion_loss.flow_terms`): per agent and step, the L1
 between the displacement the render moves it by and its true motion, the moving agents and the
-parked ones averaged apart. ``best.pt`` follows the agents' error on the validation windows
+parked ones averaged apart, plus ``precision_weight`` x the moving agents' mean miss
+``1 - exp(-d^2 / 2 s^2)`` (0 at an exact motion, 1 far off: what an agent's IoU does).
+``best.pt`` follows the agents' error on the validation windows
 (moving and parked, weighted as in the loss); each evaluation also scores the tracker (the head
-at zero) on the same windows.
+at zero) on the same windows, and the share of moving agents drawn within a cell (``*_within_1``).
 Checkpoints are whole world models: ``t3fast eval`` and ``t3fast export`` take them as they are.
 """
 
@@ -32,7 +34,7 @@ from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import MotionConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.motion.motion_cache import MotionCache, MotionWindows, collate_motion
-from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, flow_terms
+from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, flow_terms, masked_mean
 
 VAL_CHUNK = 50  # validation windows per forward pass
 HORIZONS = {name: steps - 1 for name, steps in STEPS_AT.items()}  # future step index of each horizon
@@ -45,6 +47,15 @@ def mirror_left_right(batch: MotionWindows) -> MotionWindows:
     t = batch.targets
     targets = AgentTargets(t.cells.flip(-1), t.visible, t.motion * t.motion.new_tensor([1.0, -1.0]))
     return MotionWindows(batch.present.flip(-1), batch.previous.flip(-1), batch.velocity.flip(-1) * sign, targets)
+
+
+def motion_head_loss(displacements: Tensor, targets: AgentTargets, cfg: MotionConfig) -> tuple[Tensor, dict[str, float]]:
+    """The loss of the module doc for the head's displacements ``[B, S, 2, H, W]`` and its parts."""
+    error, is_moving, is_parked = agent_errors(displacements, targets, cfg.min_flow)
+    moving, parked = masked_mean(error, is_moving), masked_mean(error, is_parked)
+    miss = masked_mean(1 - torch.exp(-0.5 * (error / cfg.precision_scale).square()), is_moving)
+    loss = moving + cfg.parked_weight * parked + cfg.precision_weight * miss
+    return loss, {"flow_moving": moving.item(), "flow_parked": parked.item(), "miss": miss.item()}
 
 
 class MotionTask:
@@ -95,12 +106,10 @@ class MotionTask:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
         displacements = model(None, None, motion_from=(batch.velocity, batch.present, batch.previous))
-        moving, parked = flow_terms(displacements, batch.targets, self.cfg.min_flow)
-        loss = moving + self.cfg.parked_weight * parked
+        loss, parts = motion_head_loss(displacements, batch.targets, self.cfg)
         with torch.no_grad():
             prior = flow_terms(tracker_motion(batch.velocity, displacements.shape[1]), batch.targets, self.cfg.min_flow)
-        return loss, {"flow_moving": moving.item(), "flow_parked": parked.item(),
-                      "tracker_moving": prior[0].item(), "tracker_parked": prior[1].item()}
+        return loss, {**parts, "tracker_moving": prior[0].item(), "tracker_parked": prior[1].item()}
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """On every validation window, per agent and step, the error (plane cells, L1) of the
@@ -119,7 +128,8 @@ class MotionTask:
                                                                                        learned.shape[1]))):
                 error, is_moving, is_parked = agent_errors(displacements, batch.targets, self.cfg.min_flow)
                 parts = {f"{name}_moving_{h}": (error[:, k], is_moving[:, k]) for h, k in HORIZONS.items()}
-                parts.update({f"{name}_moving": (error, is_moving), f"{name}_parked": (error, is_parked)})
+                parts.update({f"{name}_moving": (error, is_moving), f"{name}_parked": (error, is_parked),
+                              f"{name}_within_1": ((error < 1).to(error.dtype), is_moving)})
                 for key, (err, mask) in parts.items():
                     total = torch.stack([(err * mask).sum().double().cpu(), mask.sum().double().cpu()])
                     sums[key] = sums.get(key, torch.zeros(2, dtype=torch.float64)) + total

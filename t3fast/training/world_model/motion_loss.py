@@ -99,12 +99,15 @@ def agent_errors(displacements: Tensor, targets: AgentTargets, min_flow: float =
     return error, is_moving, visible & ~is_moving
 
 
+def masked_mean(values: Tensor, mask: Tensor) -> Tensor:
+    """Mean of ``values`` where ``mask`` (same shape) holds; 0 where it never does."""
+    return (values * mask).sum() / mask.sum().clamp(min=1)
+
+
 def flow_terms(displacements: Tensor, targets: AgentTargets, min_flow: float = 0.5) -> tuple[Tensor, Tensor]:
     """``flow_moving`` and ``flow_parked`` of the module doc (see :func:`agent_errors`)."""
     error, is_moving, is_parked = agent_errors(displacements, targets, min_flow)
-    moving = (error * is_moving).sum() / is_moving.sum().clamp(min=1)
-    parked = (error * is_parked).sum() / is_parked.sum().clamp(min=1)
-    return moving, parked
+    return masked_mean(error, is_moving), masked_mean(error, is_parked)
 
 
 def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, min_flow: float = 0.5,

@@ -49,7 +49,8 @@ def mirror_left_right(batch: MotionWindows) -> MotionWindows:
     return MotionWindows(batch.present.flip(-1), batch.previous.flip(-1), batch.velocity.flip(-1) * sign, targets)
 
 
-def motion_head_loss(displacements: Tensor, targets: AgentTargets, cfg: MotionConfig) -> tuple[Tensor, dict[str, float]]:
+def motion_head_loss(displacements: Tensor, targets: AgentTargets,
+                     cfg: MotionConfig) -> tuple[Tensor, dict[str, float]]:
     """The loss of the module doc for the head's displacements ``[B, S, 2, H, W]`` and its parts."""
     error, is_moving, is_parked = agent_errors(displacements, targets, cfg.min_flow)
     moving, parked = masked_mean(error, is_moving), masked_mean(error, is_parked)

@@ -1,7 +1,8 @@
 """Learning curves of a stage-2 run: ``python benchmarks/tools/plot_stage2_curves.py METRICS.jsonl OUT.png``.
 
-Left: the training terms (latent loss next to the copy forecast's, flow error on moving agents
-and, where logged, the drift of parked ones). Middle: validation Avg mIoU every ``eval_every``
+Left: the training terms (latent loss next to the copy forecast's, or on the labels path the
+triplane and occupancy losses; where logged, the flow error on moving agents and the drift of
+parked ones). Middle: validation Avg mIoU every ``eval_every``
 steps, along the planned and along the true ego poses, with the baselines scored once at step 0
 on the same windows as flat lines. Right: the same for the moving classes' mIoU.
 """
@@ -21,24 +22,33 @@ def main(metrics: Path, out: Path) -> None:
     train, evals = read_events(metrics)
     fig, (left, *panels) = plt.subplots(1, 3, figsize=(17, 4.5))
     steps = [r["step"] for r in train]
-    left.plot(steps, [r["values"]["latent"] for r in train], label="latent loss")
-    left.plot(steps, [r["values"]["copy_latent"] for r in train], label="latent loss of the copy forecast", ls="--")
-    left.set_xlabel("step")
-    left.set_ylabel("weighted L1 + L2")
+    logged = train[0]["values"]
     twin = left.twinx()
-    twin.plot(steps, [r["values"]["flow_moving"] for r in train], color="tab:red", alpha=0.6,
-              label="displacement error on moving agents")
-    if "flow_parked" in train[0]["values"]:
-        twin.plot(steps, [r["values"]["flow_parked"] for r in train], color="tab:orange", alpha=0.6,
-                  label="displacement of parked agents")
-    twin.set_ylabel("plane cells")
+    if "latent" in logged:  # the cached-window losses
+        left.plot(steps, [r["values"]["latent"] for r in train], label="latent loss")
+        left.plot(steps, [r["values"]["copy_latent"] for r in train], label="latent loss of the copy forecast",
+                  ls="--")
+        left.set_ylabel("weighted L1 + L2")
+    else:  # the labels path: triplane and occupancy terms
+        left.plot(steps, [r["values"]["triplane"] for r in train], label="triplane loss")
+        left.set_ylabel("L1 + L2")
+        twin.plot(steps, [r["values"]["occupancy"] for r in train], color="tab:purple", alpha=0.6,
+                  label="occupancy loss (CE + Lovasz)")
+    left.set_xlabel("step")
+    for key, colour, name in (("flow_moving", "tab:red", "displacement error on moving agents"),
+                              ("flow_parked", "tab:orange", "displacement of parked agents")):
+        if key in logged:
+            twin.plot(steps, [r["values"][key] for r in train], color=colour, alpha=0.6, label=name)
+            twin.set_ylabel("plane cells")
     left.legend(loc="upper left", fontsize=8)
     twin.legend(loc="upper right", fontsize=8)
     left.set_title("training (batch means)")
     at = [r["step"] for r in evals]
     first = evals[0]["values"]
     for panel, (suffix, what) in zip(panels, (("", "Avg mIoU"), ("_moving", "moving-class Avg mIoU"))):
-        panel.plot(at, [r["values"][f"gt_ego_miou{suffix}_avg"] for r in evals], "o-", label="t3former, true poses")
+        if f"gt_ego_miou{suffix}_avg" in first:  # ego-aligned models only
+            panel.plot(at, [r["values"][f"gt_ego_miou{suffix}_avg"] for r in evals], "o-",
+                       label="t3former, true poses")
         panel.plot(at, [r["values"][f"miou{suffix}_avg"] for r in evals], "o-", label="t3former, planned poses")
         for (key, name), colour in zip(BASELINES.items(), ("tab:green", "tab:red", "tab:purple", "tab:brown")):
             if f"{key}_miou{suffix}_avg" in first:

@@ -28,8 +28,9 @@ from torch import Tensor, nn
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.latent_cache import AlignedBatch
+from t3fast.training.world_model.loss import planner_trains, rollout_history
 from t3fast.training.world_model.motion_loss import latent_error
-from t3fast.training.world_model.motion_targets import agent_motion
+from t3fast.training.world_model.motion_targets import agent_cells
 
 PLANES = ("xy", "xz", "yz")
 
@@ -42,20 +43,13 @@ def delta_rollout_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossCon
     steps = loss.rollout_steps
     if not 0 <= first <= NUM_FUTURE - steps:
         raise ValueError(f"a {steps}-step rollout starts at a future step in [0, {NUM_FUTURE - steps}], got {first}")
-    core = model.module if hasattr(model, "module") else model
     planes = batch.planes
-    history = planes.map(lambda p: p[:, : PRESENT + 1 + first])
-    actions = torch.cat([batch.past_actions, batch.future_actions[:, :first]], dim=1)
-    if loss.pushforward and first:
-        history = planes.map(lambda p: p[:, : PRESENT + 1])
-        with torch.no_grad():
-            frames, _, planned, _ = core.rollout(history, batch.past_actions, first)
-        for frame in frames:
-            history = history.append(frame)
-        actions = torch.cat([batch.past_actions, planned], dim=1)
+    history, actions = rollout_history(model, planes, batch.past_actions, batch.future_actions, first,
+                                       loss.pushforward)
     futures, predicted, _ = model(history, actions, steps, first)
-    agents = agent_motion(batch.boxes, batch.box_valid, tuple(planes.xy.shape[-2:]))[3][:, first : first + steps]
     targets = slice(PRESENT + 1 + first, PRESENT + 1 + first + steps)
+    agents = agent_cells(batch.boxes, batch.box_valid, range(targets.start, targets.stop),
+                         tuple(planes.xy.shape[-2:]))
     latent = copy = predicted.new_zeros(())
     for name in PLANES:
         truth = getattr(planes, name)
@@ -69,8 +63,6 @@ def delta_rollout_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossCon
         with torch.no_grad():
             copy = copy + latent_error(truth[:, PRESENT : PRESENT + 1].expand_as(target), target, weight, loss.gamma)
     action = (predicted - batch.future_actions[:, first : first + steps]).square().sum(-1).mean()
-    total = latent
-    if any(p.requires_grad for p in core.planner.parameters()):
-        total = total + loss.action_weight * action
+    total = latent + loss.action_weight * action if planner_trains(model) else latent
     parts = {"latent": latent, "copy_latent": copy, "action": action}
     return total, {k: float(v.detach()) for k, v in parts.items()}

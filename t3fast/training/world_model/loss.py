@@ -13,6 +13,31 @@ from t3fast.training.losses import occupancy_loss
 from t3fast.training.sampling import sample_changed_points, sample_query_points
 
 
+def rollout_history(model: nn.Module, planes: Triplane, past_actions: Tensor, future_actions: Tensor, first: int,
+                    pushforward: bool) -> tuple[Triplane, Tensor]:
+    """The history a rollout from future step ``first`` reads: the planes ``[B, 11, C, H, W]`` up
+    to that step and the true displacements so far or, with ``pushforward``, the present's
+    planes followed by the model's own predictions and plans of the ``first`` earlier steps
+    (computed without gradients), as at inference -> (planes, displacements ``[B, T_p + first, 2]``)."""
+    if not (pushforward and first):
+        return (planes.map(lambda p: p[:, : PRESENT + 1 + first]),  # the forecaster reads the last 5
+                torch.cat([past_actions, future_actions[:, :first]], dim=1))
+    core = model.module if hasattr(model, "module") else model
+    history = planes.map(lambda p: p[:, : PRESENT + 1])
+    with torch.no_grad():
+        frames, _, planned, _ = core.rollout(history, past_actions, first)
+    for frame in frames:
+        history = history.append(frame)
+    return history, torch.cat([past_actions, planned], dim=1)
+
+
+def planner_trains(model: nn.Module) -> bool:
+    """Whether the world model's planner (DDP-wrapped or not) has weights that train: a frozen
+    planner's displacement error is logged, not added to the loss the gradient sees."""
+    core = model.module if hasattr(model, "module") else model
+    return any(p.requires_grad for p in core.planner.parameters())
+
+
 def rollout_loss(
     model: nn.Module, planes: Triplane, occ: Tensor, past_actions: Tensor, future_actions: Tensor, first: int,
     steps: int, loss: WorldLossConfig,
@@ -27,16 +52,7 @@ def rollout_loss(
     Args:
         planes: encoded frames ``[B, 11, C, H, W]``; occ: labels ``[B, 11, X, Y, Z]``.
     """
-    history = planes.map(lambda p: p[:, : PRESENT + 1 + first])  # the forecaster reads the last 5
-    actions = torch.cat([past_actions, future_actions[:, :first]], dim=1)
-    core = model.module if hasattr(model, "module") else model
-    if loss.pushforward and first:
-        history = planes.map(lambda p: p[:, : PRESENT + 1])
-        with torch.no_grad():
-            frames, _, planned, _ = core.rollout(history, past_actions, first)
-        for frame in frames:
-            history = history.append(frame)
-        actions = torch.cat([past_actions, planned], dim=1)
+    history, actions = rollout_history(model, planes, past_actions, future_actions, first, loss.pushforward)
     targets = [PRESENT + 1 + first + j for j in range(steps)]
     slots = (loss.num_occupied, loss.num_near_free, loss.num_far_free)
     queries = [sample_query_points(occ[:, t], *slots) for t in targets]
@@ -53,7 +69,7 @@ def rollout_loss(
     act = (predicted - future_actions[:, first : first + steps]).square().sum(-1).mean()
     tri, occ_loss = tri / steps, occ_loss / steps
     total = tri + loss.xi * occ_loss
-    if any(p.requires_grad for p in core.planner.parameters()):  # a frozen planner's error is only logged
+    if planner_trains(model):
         total = total + loss.action_weight * act
     parts = {"triplane": tri, "occupancy": occ_loss, "action": act}
     return total, {k: float(v.detach()) for k, v in parts.items()}

@@ -35,6 +35,29 @@ def _rotate(v: Tensor, yaw: Tensor) -> Tensor:
     return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], dim=-1)
 
 
+def _inside(points: Tensor, box: Tensor, margin: float) -> tuple[Tensor, Tensor]:
+    """Which of the plane cells' centres ``points`` ``[1, 1, HW, 2]`` lie inside each box
+    ``[B, A, 7]`` grown by ``margin``: mask ``[B, A, HW]``, and the cells' coordinates on each
+    box ``[B, A, HW, 2]``."""
+    local = _rotate(points - box[:, :, None, :2], -box[:, :, None, 6])
+    return (local.abs() <= box[:, :, None, 3:5] / 2 + margin).all(-1), local
+
+
+def _covered(points: Tensor, box: Tensor, valid: Tensor, margin: float) -> Tensor:
+    """Cells ``[B, HW]`` some valid box (``valid`` ``[B, A]``) of ``box`` ``[B, A, 7]`` covers."""
+    return (_inside(points, box, margin)[0] & valid[:, :, None]).any(1)
+
+
+def agent_cells(boxes: Tensor, box_valid: Tensor, frames: range, shape: tuple[int, int] = (100, 100),
+                margin: float = 0.4) -> Tensor:
+    """The ``agents`` mask of :func:`agent_motion` for the given ``frames`` of the window only:
+    bool ``[B, len(frames), H, W]``, the cells a box covers now or at that frame."""
+    points = plane_cell_centres(shape, boxes.device).view(1, 1, -1, 2)
+    now = _covered(points, boxes[:, PRESENT], box_valid[:, PRESENT], margin)
+    cells = [now | _covered(points, boxes[:, f], box_valid[:, f], margin) for f in frames]
+    return torch.stack(cells, 1).view(boxes.shape[0], len(frames), *shape)
+
+
 def agent_motion(
     boxes: Tensor, box_valid: Tensor, shape: tuple[int, int] = (100, 100), margin: float = 0.4,
     min_flow: float = 0.5,
@@ -62,14 +85,7 @@ def agent_motion(
                         device=boxes.device)
     points = plane_cell_centres(shape, boxes.device).view(1, 1, h * w, 2)  # [1, 1, HW, 2]
     now = boxes[:, PRESENT]  # [B, A, 7]
-
-    def inside(box: Tensor) -> tuple[Tensor, Tensor]:
-        """Cells inside each box ``[B, A, 7]``: mask ``[B, A, HW]`` and the cells' coordinates on
-        each box ``[B, A, HW, 2]``."""
-        local = _rotate(points - box[:, :, None, :2], -box[:, :, None, 6])
-        return (local.abs() <= box[:, :, None, 3:5] / 2 + margin).all(-1), local
-
-    in_now, local = inside(now)
+    in_now, local = _inside(points, now, margin)
     in_now = in_now & box_valid[:, PRESENT, :, None]
     # a cell covered by several boxes takes the last one (boxes of distinct agents rarely overlap)
     owner = torch.where(in_now, torch.arange(a, device=boxes.device).view(1, a, 1), -1).amax(1)  # [B, HW]
@@ -86,7 +102,7 @@ def agent_motion(
         displacements.append(disp)
         moving.append(moved)
         static.append(~covered_now | (seen & ~moved))
-        agents.append(covered_now | (inside(future)[0] & box_valid[:, frame, :, None]).any(1))
+        agents.append(covered_now | _covered(points, future, box_valid[:, frame], margin))
     disp = torch.stack(displacements, 1).view(b, -1, h, w, 2).permute(0, 1, 4, 2, 3)
     return (disp, *(torch.stack(m, 1).view(b, -1, h, w) for m in (moving, static, agents)), covered_now.view(b, h, w),
             owner.view(b, h, w))

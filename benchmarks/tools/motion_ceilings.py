@@ -9,7 +9,10 @@ Rows (Avg mIoU, moving-class Avg mIoU, IoU; classes absent from the windows skip
 * ``chain_blend``: the last-step velocity averaged with the two-step mean along the matched
   chain (present -> previous -> the one before), a classical alternative;
 * ``true_velocity``: each agent's box velocity over the last step, extrapolated (an oracle of
-  the present's motion); ``true_motion``: each agent's true future box motion (the ceiling).
+  the present's motion); ``true_turn``: that velocity turned by the box's true yaw rate over
+  the last step at every future step (constant turn rate and speed, the best a kinematic
+  extrapolation of the present state can do); ``true_motion``: each agent's true future box
+  motion (the ceiling).
 
 An agent (BEV component) takes the box whose present centre is nearest its centroid (within
 6 voxels) and seen until the horizon; the others keep the tracker's velocity.
@@ -18,6 +21,7 @@ An agent (BEV component) takes the box whose present centre is nearest its centr
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 
@@ -41,8 +45,9 @@ def velocities(now: dict, before: dict, older: dict, blend: bool) -> torch.Tenso
 
 
 def box_shifts(now: dict, boxes: torch.Tensor, valid: torch.Tensor, mode: str) -> dict[int, torch.Tensor]:
-    """Component -> ``[S, 2]`` voxel shifts from its box: the true future motion or the last
-    step's velocity extrapolated."""
+    """Component -> ``[S, 2]`` voxel shifts from its box: the true future motion, or the last
+    step's velocity extrapolated straight (``true_velocity``) or turning at the last step's yaw
+    rate (``true_turn``)."""
     centres = (boxes[:, :, :2].double() - torch.tensor(GRID_LOWER[:2], dtype=torch.float64)) / VOXEL_SIZE - 0.5
     if now["cls"].shape[0] == 0 or not valid[PRESENT].any():
         return {}
@@ -54,10 +59,17 @@ def box_shifts(now: dict, boxes: torch.Tensor, valid: torch.Tensor, mode: str) -
     for c in range(now["cls"].shape[0]):
         a = int(owner[c])
         if near[c] <= OWNER_CELLS and bool(valid[PRESENT - 1 :, a].all()):
+            velocity = centres[PRESENT, a] - centres[PRESENT - 1, a]
             if mode == "true_motion":
                 out[c] = centres[PRESENT + 1 :, a] - centres[PRESENT, a]
+            elif mode == "true_turn":
+                turn = torch.remainder(boxes[PRESENT, a, 6] - boxes[PRESENT - 1, a, 6] + math.pi, 2 * math.pi) - math.pi
+                angle = k[:, 0] * turn.double()
+                cos, sin = torch.cos(angle), torch.sin(angle)
+                steps = torch.stack([cos * velocity[0] - sin * velocity[1], sin * velocity[0] + cos * velocity[1]], -1)
+                out[c] = steps.cumsum(0)
             else:
-                out[c] = k * (centres[PRESENT, a] - centres[PRESENT - 1, a])
+                out[c] = k * velocity
     return out
 
 
@@ -71,7 +83,7 @@ def moved_agents(batch, mode: str) -> MethodOutput:
         present = batch.past_occ[n, -1]
         now, before, older = (frame_agents(f, AGENTS) for f in (present, past[n, 1], past[n, 0]))
         shift = k * velocities(now, before, older, blend=mode == "chain_blend")[None]
-        if mode in ("true_velocity", "true_motion"):
+        if mode in ("true_velocity", "true_turn", "true_motion"):
             for c, s in box_shifts(now, batch.boxes[n], batch.box_valid[n], mode).items():
                 shift[:, c] = s
         scenes.append(move_agents(present, now, shift.round().long(), FREE))
@@ -87,7 +99,7 @@ def main() -> None:
     args = parser.parse_args()
     windows = SyntheticDriving(args.split, args.scenes, stride=args.stride)
     methods = {"warp_gt_ego": warp_gt_ego_method, "track_gt_ego": track_gt_ego_method}
-    methods.update({m: (lambda b, m=m: moved_agents(b, m)) for m in ("chain_blend", "true_velocity", "true_motion")})
+    methods.update({m: (lambda b, m=m: moved_agents(b, m)) for m in ("chain_blend", "true_velocity", "true_turn", "true_motion")})
     records = evaluate_many(methods, windows, list(range(min(len(windows), args.windows))), absent="skip")
     print(f"{args.split}, {args.scenes} scenes, {min(len(windows), args.windows)} windows, true ego poses")
     print("| agents moved by | Avg mIoU | moving-class mIoU | IoU |\n|---|---:|---:|---:|")

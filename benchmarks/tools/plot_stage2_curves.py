@@ -41,7 +41,10 @@ def main(metrics: Path, out: Path) -> None:
             twin.plot(steps, [r["values"][key] for r in train], color=colour, alpha=0.6, label=name)
             twin.set_ylabel("plane cells")
     left.legend(loc="upper left", fontsize=8)
-    twin.legend(loc="upper right", fontsize=8)
+    if twin.lines:
+        twin.legend(loc="upper right", fontsize=8)
+    else:  # nothing logged on the second axis (the cached-window losses)
+        twin.remove()
     left.set_title("training (batch means)")
     at = [r["step"] for r in evals]
     first = evals[0]["values"]

@@ -99,7 +99,8 @@ def main() -> None:
     args = parser.parse_args()
     windows = SyntheticDriving(args.split, args.scenes, stride=args.stride)
     methods = {"warp_gt_ego": warp_gt_ego_method, "track_gt_ego": track_gt_ego_method}
-    methods.update({m: (lambda b, m=m: moved_agents(b, m)) for m in ("chain_blend", "true_velocity", "true_turn", "true_motion")})
+    oracles = ("chain_blend", "true_velocity", "true_turn", "true_motion")
+    methods.update({m: (lambda b, m=m: moved_agents(b, m)) for m in oracles})
     records = evaluate_many(methods, windows, list(range(min(len(windows), args.windows))), absent="skip")
     print(f"{args.split}, {args.scenes} scenes, {min(len(windows), args.windows)} windows, true ego poses")
     print("| agents moved by | Avg mIoU | moving-class mIoU | IoU |\n|---|---:|---:|---:|")

@@ -21,7 +21,6 @@ An agent (BEV component) takes the box whose present centre is nearest its centr
 from __future__ import annotations
 
 import argparse
-import math
 
 import torch
 
@@ -30,7 +29,7 @@ from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import MethodOutput, evaluate_many, track_gt_ego_method, warp_gt_ego_method
 from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, chained_velocities, frame_agents, move_agents
-from t3fast.models.ego_motion import planar_poses, unwarp_sequence, warp_sequence
+from t3fast.models.ego_motion import compose, planar_poses, relative, unwarp_sequence, warp_sequence
 
 AGENTS = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
 OWNER_CELLS = 6.0  # voxels between a component's centroid and its box centre to count as that agent
@@ -63,11 +62,12 @@ def box_shifts(now: dict, boxes: torch.Tensor, valid: torch.Tensor, mode: str) -
             if mode == "true_motion":
                 out[c] = centres[PRESENT + 1 :, a] - centres[PRESENT, a]
             elif mode == "true_turn":
-                turn = torch.remainder(boxes[PRESENT, a, 6] - boxes[PRESENT - 1, a, 6] + math.pi, 2 * math.pi) - math.pi
-                angle = k[:, 0] * turn.double()
-                cos, sin = torch.cos(angle), torch.sin(angle)
-                steps = torch.stack([cos * velocity[0] - sin * velocity[1], sin * velocity[0] + cos * velocity[1]], -1)
-                out[c] = steps.cumsum(0)
+                last, now_pose = boxes[PRESENT - 1 : PRESENT + 1, a][:, [0, 1, 6]].double()
+                turn = relative(last, now_pose)[2]  # the box's yaw change over the last step, wrapped
+                headings = torch.zeros(k.shape[0], 3, dtype=torch.float64)
+                headings[:, 2] = k[:, 0] * turn
+                step = torch.cat([velocity, velocity.new_zeros(1)])  # the last step as a pose (x, y, 0)
+                out[c] = compose(headings, step.expand_as(headings))[:, :2].cumsum(0)
             else:
                 out[c] = k * velocity
     return out

@@ -123,10 +123,10 @@ PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig | Mo
     "ae-small-bev": lambda: _stage1("small-bev", **_SMALL_AE),
     "ae-paper": lambda: _stage1("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
                                 eval_every=2000, ckpt_every=1000),
-    # the tracker's motion corrected by a head that reads the scene, drawn in label space; the
-    # route planner
+    # the tracker's motion corrected by a head that reads the scene, drawn in label space (each
+    # agent as the box fitted to its past frames); the route planner
     "wm-small": lambda: _stage2_flow("wm-small", tracker_prior=True, motion_context=True, render_agents=True,
-                                     planner="route"),
+                                     agent_boxes=True, planner="route"),
     # the papers' Delta forecaster (attention per scale, autoregressive), ego-aligned
     "wm-small-delta": lambda: _stage2_small("wm-small-delta"),
     # the papers' formulation: every frame in its own ego frame

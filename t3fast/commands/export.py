@@ -16,6 +16,9 @@ def add_export_command(sub: argparse._SubParsersAction) -> None:
     export.add_argument("out", type=Path, help="the file to write (loads with t3fast.load_world_model / eval / demo)")
     export.add_argument("--dtype", choices=sorted(DTYPES), default="float16",
                         help="dtype of the stored weights; loading casts back to float32 (default float16)")
+    export.add_argument("--model", action="append", default=[], metavar="KEY=VALUE",
+                        help="a world-model setting to ship instead of the run's (inference options such as "
+                             "agent_boxes=true; the weights must still fit); repeatable")
     export.set_defaults(func=_export)
 
 
@@ -27,6 +30,6 @@ def _export(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.out} is a folder; it names the file to write")
     if args.out.resolve() == args.ckpt.resolve():
         raise UsageError(f"{args.out}: writing over the checkpoint being exported would lose its training state")
-    size = export_weights(args.ckpt, args.out, DTYPES[args.dtype])
+    size = export_weights(args.ckpt, args.out, DTYPES[args.dtype], args.model)
     print(f"wrote {args.out} ({size / 2**20:.1f} MiB, {args.dtype})")
     return 0

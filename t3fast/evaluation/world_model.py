@@ -86,12 +86,13 @@ class SharedRollout:
             poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
             past = model.encode_history(batch.past_occ, poses)
             velocity = model.agent_velocity(batch.past_occ, poses)
+            boxes = model.fit_boxes(batch.past_occ, poses)
             command = batch.command if self.command else None
             futures, _, planned, motion = model.rollout(past, actions, NUM_FUTURE, velocity=velocity, command=command)
             present = past.map(lambda p: p[:, -1])
             frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
             self._out = dict(futures=futures, motion=motion, actions=planned, poses=frame_poses, present=present,
-                             reconstruction=model.decoder.predict(present))
+                             reconstruction=model.decoder.predict(present), boxes=boxes)
             self._batch = batch
         return self._out
 
@@ -118,10 +119,11 @@ def t3former_method(
         present = batch.past_occ[:, -1] if keep_static else None
         if gt_ego:
             poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
-            labels = model.render(out["futures"], poses, out["present"], present, motion=out["motion"])
+            labels = model.render(out["futures"], poses, out["present"], present, motion=out["motion"],
+                                  boxes=out["boxes"])
         elif keep_static:  # the full decoding when a row already made it, else only the voxels that can change
             labels = model.render(out["futures"], out["poses"], out["present"], present, out.get("decoded"),
-                                  out["motion"])
+                                  out["motion"], out["boxes"])
         else:
             labels = shared.decoded(batch)
         return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])
@@ -289,7 +291,9 @@ def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 1, 
 
     def step() -> None:
         velocity = model.agent_velocity(batch.past_occ[:1], poses)  # from the newest frame: part of the step
-        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses, velocity=velocity)
+        boxes = model.fit_boxes(batch.past_occ[:1], poses)
+        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses, velocity=velocity,
+                                      boxes=boxes)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 

@@ -128,6 +128,9 @@ class WorldModelConfig:
     # draw the observed agents moved along the flow forecaster's displacements (label space)
     # instead of decoding them from the forecast latent (see T3Former._render_agents)
     render_agents: bool = False
+    # draw those agents as the boxes fitted to their columns in the past frames, moved by the same
+    # displacement without rounding it to cells (t3fast.models.agent_boxes)
+    agent_boxes: bool = False
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -194,11 +197,14 @@ class WorldModelConfig:
         if self.render_agents is True and self.forecaster != "flow":
             raise ConfigError("'render_agents' draws agents along the flow forecaster's displacements: it needs "
                               f"forecaster='flow', got {self.forecaster!r}")
+        if self.agent_boxes is True and self.render_agents is not True:
+            raise ConfigError("'agent_boxes' draws the agents 'render_agents' moves as fitted boxes: it needs "
+                              "render_agents=true")
         if self.motion_context is True and not self.tracker_prior:
             raise ConfigError("'motion_context' gives the tracker prior's motion head the scene: it needs "
                               "tracker_prior=true")
         for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents",
-                    "motion_context"):
+                    "agent_boxes", "motion_context"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

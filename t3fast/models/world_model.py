@@ -19,9 +19,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
+from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, VOXEL_SIZE
 from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
+from t3fast.models.agent_boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
 from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
@@ -195,6 +196,7 @@ class T3Former(nn.Module):
         ego_aligned: bool = False,
         static_from_present: bool = True,
         render_agents: bool = False,
+        agent_boxes: bool = False,
     ):
         super().__init__()
         self.encoder, self.forecaster, self.planner, self.decoder = encoder, forecaster, planner, decoder
@@ -202,7 +204,9 @@ class T3Former(nn.Module):
         if render_agents and not isinstance(forecaster, FlowTriplaneForecaster):
             raise ValueError("render_agents draws the agents along the flow forecaster's displacements: "
                              "it needs forecaster='flow'")
-        self.render_agents = render_agents
+        if agent_boxes and not render_agents:
+            raise ValueError("agent_boxes draws the agents render_agents moves as fitted boxes: it needs render_agents")
+        self.render_agents, self.agent_boxes = render_agents, agent_boxes
         self.encoder.requires_grad_(False)
         # the sizes it was built from (set by from_config): what a checkpoint records
         self.autoencoder_config: AutoencoderConfig | None = None
@@ -247,7 +251,7 @@ class T3Former(nn.Module):
         )
         model = cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder),
                     ego_aligned=world.ego_aligned, static_from_present=world.static_from_present,
-                    render_agents=world.render_agents)
+                    render_agents=world.render_agents, agent_boxes=world.agent_boxes)
         model.autoencoder_config, model.world_config = autoencoder, world
         return model
 
@@ -288,6 +292,16 @@ class T3Former(nn.Module):
             return None
         frames = torch.cat([warp_sequence(occupancy[:, -3:-1], poses[:, -3:-1]), occupancy[:, -1:]], dim=1)
         return tracker_velocities(frames, self.encoder.config.plane_shape[:2])
+
+    @torch.no_grad()
+    def fit_boxes(self, occupancy: Tensor, poses: Tensor) -> list[AgentBoxes] | None:
+        """Per sample, the boxes of the present's agents fitted to the past frames
+        (:func:`~t3fast.models.agent_boxes.fit_agent_boxes`; labels ``[B, T, X, Y, Z]``, each in its
+        own ego frame, planar poses ``[B, T, 3]`` in the present frame), what :meth:`render`
+        draws them with; None for a model that does not draw boxes."""
+        if not self.agent_boxes:
+            return None
+        return [fit_agent_boxes(occupancy[n], poses[n])[1] for n in range(occupancy.shape[0])]
 
     @torch.no_grad()
     def decode_frames(self, futures: list[Triplane], poses: Tensor) -> Tensor:
@@ -452,7 +466,8 @@ class T3Former(nn.Module):
         poses, actions = split_past_motion(past_motion)
         past = self.encode_history(past_occupancy, poses)
         return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses,
-                                            self.agent_velocity(past_occupancy, poses), command)
+                                            self.agent_velocity(past_occupancy, poses), command,
+                                            self.fit_boxes(past_occupancy, poses))
 
     def _check_history(self, name: str, frames: int) -> None:
         """The forecaster was trained on ``history`` past frames (the present included); fewer
@@ -466,7 +481,7 @@ class T3Former(nn.Module):
     def forecast_from_triplanes(
         self, past: Triplane, past_actions: Tensor, steps: int = 6, future_actions: Tensor | None = None,
         present: Tensor | None = None, past_poses: Tensor | None = None, velocity: Tensor | None = None,
-        command: Tensor | None = None,
+        command: Tensor | None = None, boxes: list[AgentBoxes] | None = None,
     ) -> Forecast:
         """The forecasting step from encoded past frames (planes ``[B, T, C, H, W]`` from
         :meth:`encode_history`): forecaster, planner (unless ``future_actions`` are given) and
@@ -475,7 +490,8 @@ class T3Former(nn.Module):
         frame's labels ``[B, X, Y, Z]``, for :func:`observed_static`; ``past_poses``: the past
         planar poses ``[B, T, 3]``, for the planned headings (:func:`planned_poses`);
         ``velocity``: the agents' velocities (:meth:`agent_velocity`) for a forecaster with a
-        tracker prior; ``command``: as for :meth:`forecast`.
+        tracker prior; ``command``: as for :meth:`forecast`; ``boxes``: the agents' fitted boxes
+        (:meth:`fit_boxes`) for a model that draws them.
         Refuses (:class:`~t3fast.errors.UsageError`) a number of past frames ``T`` other
         than the model's ``history`` and non-finite motion, as :meth:`forecast` does."""
         self._check_history("past", past.xy.shape[1])
@@ -497,13 +513,13 @@ class T3Former(nn.Module):
                 poses, actions = future_actions, displacements_from_poses(future_actions)
             else:
                 actions, poses = future_actions, poses_from_displacements(future_actions)
-        labels = self.render(futures, poses, past.map(lambda p: p[:, -1]), present, motion=motion)
+        labels = self.render(futures, poses, past.map(lambda p: p[:, -1]), present, motion=motion, boxes=boxes)
         return Forecast(labels, futures, actions, actions.cumsum(1), poses)
 
     @torch.no_grad()
     def render(
         self, futures: list[Triplane], poses: Tensor, present_planes: Triplane, present: Tensor | None = None,
-        decoded: Tensor | None = None, motion: Tensor | None = None,
+        decoded: Tensor | None = None, motion: Tensor | None = None, boxes: list[AgentBoxes] | None = None,
     ) -> Tensor:
         """Future triplanes -> labels uint8 ``[B, S, X, Y, Z]``, each frame in the ego frame of
         its pose (``poses`` ``[B, S, 3]``): :meth:`decode_frames` (or ``decoded``, its result
@@ -512,10 +528,11 @@ class T3Former(nn.Module):
         the forecast (:func:`observed_static`; ``present_planes``: the present triplane). A
         model with ``render_agents`` given the forecaster's displacements ``motion``
         ``[B, S, 2, H, W]`` draws the observed agents moved along them instead
-        (:meth:`_render_agents`)."""
+        (:meth:`_render_agents`), those with a trusted fitted box in ``boxes`` (:meth:`fit_boxes`)
+        drawn as it."""
         keep_present = present is not None and self.ego_aligned and self.static_from_present
         if keep_present and self.render_agents and motion is not None:
-            return self._render_agents(futures, motion, poses, present)
+            return self._render_agents(futures, motion, poses, present, boxes)
         if keep_present and decoded is None:
             return self._render_changes(futures, poses, present_planes, present)
         labels = self.decode_frames(futures, poses) if decoded is None else decoded
@@ -524,7 +541,8 @@ class T3Former(nn.Module):
             labels = observed_static(labels, self.reference_frames(present_planes, labels, moved, poses), moved)
         return labels
 
-    def _render_agents(self, futures: list[Triplane], motion: Tensor, poses: Tensor, present: Tensor) -> Tensor:
+    def _render_agents(self, futures: list[Triplane], motion: Tensor, poses: Tensor, present: Tensor,
+                       boxes: list[AgentBoxes] | None = None) -> Tensor:
         """:meth:`render` in label space: each future frame is the observed present with every
         agent (8-connected BEV component of vehicle and human columns) moved as a whole by the
         mean of the forecast displacement ``motion`` ``[B, S, 2, H, W]`` over its columns, moved
@@ -532,13 +550,23 @@ class T3Former(nn.Module):
         (:func:`beyond_present`). The forecaster's motion is drawn exactly: no decoding blurs a
         car or loses a pedestrian (the latent render lost 1.1 moving-class mIoU to the tracker
         that moves the same agents this way). With the tracker prior and an untrained motion
-        head, the agents move exactly as the tracker moves them."""
+        head, the agents move exactly as the tracker moves them. Given their fitted ``boxes``,
+        the agents with a trusted fit are drawn as their box moved by the same mean
+        displacement, not rounded to cells (:mod:`t3fast.models.agent_boxes`)."""
         agents = _AGENTS.to(present.device)
-        scenes = []
+        scenes, drawn = [], []
         for n in range(present.shape[0]):
             now = frame_agents(present[n], agents)
-            shift = component_shifts(now, motion[n]).round().long()
-            scenes.append(move_agents(present[n], now, shift, FREE))
+            shift = component_shifts(now, motion[n])
+            fitted = boxes[n] if boxes is not None else None
+            if fitted is not None and fitted.label.shape[0] != now["cls"].shape[0]:
+                raise ValueError(f"render: {fitted.label.shape[0]} fitted boxes for the {now['cls'].shape[0]} agents "
+                                 "of the present frame: fit them on the same frames (fit_boxes)")
+            as_box = fitted.drawn if fitted is not None else torch.zeros(now["cls"].shape[0], dtype=torch.bool)
+            voxels = ~as_box.to(present.device)[now["component"]]
+            moved = dict(now, ijz=now["ijz"][voxels], label=now["label"][voxels], component=now["component"][voxels])
+            scenes.append(move_agents(present[n], moved, shift.round().long(), FREE))
+            drawn.append((fitted, as_box, shift))
         labels = unwarp_sequence(torch.stack(scenes), poses, fill=IGNORE)
         for k, future in enumerate(futures):
             points = frame_queries(poses[:, k].float(), self.decoder.grid)
@@ -548,6 +576,13 @@ class T3Former(nn.Module):
                 if unseen.numel():
                     decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), points[n : n + 1, unseen])
                     frame[unseen] = beyond_present(decoded.view(-1))
+        for n, (fitted, as_box, shift) in enumerate(drawn):
+            if bool(as_box.any()):
+                for k in range(labels.shape[1]):
+                    centre = fitted.centre[as_box] + shift[k, as_box.to(shift.device)].cpu() * VOXEL_SIZE
+                    draw_agent_boxes(labels[n, k], centre, fitted.yaw[as_box], fitted.length[as_box],
+                                     fitted.width[as_box], fitted.bottom[as_box], fitted.top[as_box],
+                                     fitted.label[as_box], poses[n, k].cpu())
         return labels
 
     def _render_changes(self, futures: list[Triplane], poses: Tensor, present_planes: Triplane,

@@ -1,0 +1,117 @@
+"""Agents' boxes fitted to their columns in the past frames, and drawn as the data draws them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK
+from t3fast.data.synthetic.render import draw_boxes
+from t3fast.data.synthetic.world import ON_GROUND, z_level
+from t3fast.models.agent_boxes import draw_agent_boxes, fit_agent_boxes
+from t3fast.models.ego_motion import relative
+
+GRID = (200, 200, 16)
+
+
+def _empty() -> np.ndarray:
+    frame = np.full(GRID, FREE, dtype=np.uint8)
+    frame[..., 0] = DRIVEABLE_SURFACE
+    return frame
+
+
+def _scene(boxes_at, poses: torch.Tensor, labels) -> torch.Tensor:
+    """Five frames, each in its own ego frame (planar ``poses`` ``[5, 3]`` in the present one),
+    with the boxes ``boxes_at(t)`` ``[m, 7]`` (present frame) drawn the way the synthetic data
+    draws them."""
+    frames = []
+    for t in range(poses.shape[0]):
+        boxes = torch.as_tensor(boxes_at(t), dtype=torch.float64)
+        local = relative(poses[t].double().expand(boxes.shape[0], 3), boxes[:, [0, 1, 6]])
+        boxes = boxes.clone()
+        boxes[:, 0], boxes[:, 1], boxes[:, 6] = local[:, 0], local[:, 1], local[:, 2]
+        frame = _empty()
+        draw_boxes(frame, boxes.numpy(), np.asarray(labels))
+        frames.append(torch.from_numpy(frame))
+    return torch.stack(frames)
+
+
+def _moving_ego(step: float = 1.3, turn: float = 0.03) -> torch.Tensor:
+    """The ego driving and turning: its five planar poses in the present frame."""
+    poses, pose = [torch.zeros(3, dtype=torch.float64)], torch.zeros(3, dtype=torch.float64)
+    for _ in range(4):  # walk back from the present
+        pose = torch.stack([pose[0] - step * math.cos(float(pose[2])), pose[1] - step * math.sin(float(pose[2])),
+                            pose[2] - turn])
+        poses.append(pose)
+    return torch.stack(poses[::-1])
+
+
+def _yaw_error(a: float, b: float) -> float:
+    """Heading difference up to the half turn a box cannot tell."""
+    return abs((a - b + math.pi / 2) % math.pi - math.pi / 2)
+
+
+def test_the_fit_finds_a_moving_car_and_a_walking_pedestrian_to_centimetres():
+    car = [10.13, -3.27, 0.3, 4.53, 1.87, 1.6, 0.21]
+    walker = [-7.31, 8.57, 0.3, 0.63, 0.71, 1.8, 1.9]
+    car_v, walker_v = (1.37, 0.29), (-0.31, 0.57)
+
+    def boxes_at(t: int) -> list[list[float]]:
+        back = t - 4
+        return [[car[0] + car_v[0] * back, car[1] + car_v[1] * back, *car[2:]],
+                [walker[0] + walker_v[0] * back, walker[1] + walker_v[1] * back, *walker[2:]]]
+
+    poses = _moving_ego()
+    frames = _scene(boxes_at, poses, [CAR, PEDESTRIAN])
+    now, fit = fit_agent_boxes(frames, poses)
+    assert sorted(now["cls"].tolist()) == sorted([CAR, PEDESTRIAN]) and fit.drawn.all()
+    start = fit_agent_boxes(frames, poses, iters=0)[1]  # the centroids, the last step's displacement
+    for truth, velocity, label, reach in ((car, car_v, CAR, 0.03), (walker, walker_v, PEDESTRIAN, 0.08)):
+        i = int((fit.label == label).nonzero())
+        centre, speed = torch.tensor(truth[:2], dtype=torch.float64), torch.tensor(velocity, dtype=torch.float64)
+        assert (fit.centre[i] - centre).norm() < reach and (fit.velocity[i] - speed).norm() < reach
+        assert abs(float(fit.length[i]) - truth[3]) < 0.1 and abs(float(fit.width[i]) - truth[4]) < 0.1
+        assert fit.bottom[i] == ON_GROUND and fit.top[i] == z_level(truth[5])
+    walker_index = int((fit.label == PEDESTRIAN).nonzero())
+    # one frame's columns leave the 0.6 m pedestrian anywhere within them; five frames pin it down
+    assert (start.centre[walker_index] - torch.tensor(walker[:2])).norm() > 0.1
+    car_index = int((fit.label == CAR).nonzero())
+    assert _yaw_error(float(fit.yaw[car_index]), car[6]) < 0.05
+
+
+def test_drawn_boxes_are_the_columns_the_data_fills():
+    """:func:`draw_agent_boxes` voxelises a box as the synthetic data does (column centres inside
+    the footprint and the column under the centre), in a frame at another pose."""
+    boxes = torch.tensor([[3.17, -1.91, 0.3, 4.4, 1.9, 1.5, 0.7], [-12.05, 20.3, 0.3, 0.5, 0.5, 1.7, -2.0]],
+                         dtype=torch.float64)
+    pose = torch.tensor([1.7, -0.4, 0.25], dtype=torch.float64)
+    expected = _scene(lambda t: boxes, pose[None], [CAR, PEDESTRIAN])[0]
+    volume = torch.from_numpy(_empty())
+    tops = torch.tensor([z_level(1.5), z_level(1.7)])
+    draw_agent_boxes(volume, boxes[:, :2], boxes[:, 6], boxes[:, 3], boxes[:, 4], torch.full((2,), ON_GROUND), tops,
+                     torch.tensor([CAR, PEDESTRIAN]), pose)
+    assert torch.equal(volume, expected)
+
+
+def test_agents_the_fit_cannot_explain_move_as_voxels():
+    """A truck with its trailer is one component of two classes, an agent seen in one frame has
+    no motion to fit, and a frame without agents has nothing to fit."""
+    poses = torch.zeros(5, 3, dtype=torch.float64)
+    rig = [[0.0, 0.0, 0.3, 6.0, 2.4, 3.0, 0.0], [-7.0, 0.0, 0.3, 8.0, 2.4, 3.0, 0.0]]
+    frames = _scene(lambda t: rig, poses, [TRUCK, TRAILER])
+    frames[:4, 150:160, 20:24, 1:3] = FREE
+    frames[4, 150:160, 20:24, 1:3] = CAR  # appears in the present only
+    now, fit = fit_agent_boxes(frames, poses)
+    assert now["cls"].shape[0] == 2 and not fit.drawn.any()
+    now, fit = fit_agent_boxes(torch.from_numpy(_empty())[None].repeat(5, 1, 1, 1), poses)
+    assert now["cls"].shape[0] == 0 and fit.centre.shape == (0, 2) and fit.drawn.shape == (0,)
+
+
+def test_bad_shapes_are_refused():
+    with pytest.raises(ValueError, match=r"frames must be \[T, X, Y, Z\] and poses \[T, 3\]"):
+        fit_agent_boxes(torch.zeros(5, 200, 200, dtype=torch.uint8), torch.zeros(5, 3))
+    with pytest.raises(ValueError, match=r"frames must be \[T, X, Y, Z\] and poses \[T, 3\]"):
+        fit_agent_boxes(torch.zeros(5, 200, 200, 16, dtype=torch.uint8), torch.zeros(4, 3))

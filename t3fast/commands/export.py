@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -22,6 +24,26 @@ def add_export_command(sub: argparse._SubParsersAction) -> None:
     export.set_defaults(func=_export)
 
 
+def model_options(options: list[str]) -> Callable[[dict[str, Any], str | None], dict[str, Any]]:
+    """A config edit for :func:`~t3fast.io.checkpoint.export_weights`: a world model's config
+    with the ``"key=value"`` settings of its model section replaced, validated by
+    :class:`~t3fast.models.config.WorldModelConfig` (:class:`~t3fast.errors.ConfigError` for an
+    invalid one, or for an autoencoder checkpoint)."""
+    from t3fast.errors import ConfigError
+    from t3fast.io.checkpoint import WORLD_MODEL
+    from t3fast.io.config import config_to_dict, load_config
+    from t3fast.models.config import WorldModelConfig
+
+    def edit(config: dict[str, Any], kind: str | None) -> dict[str, Any]:
+        if kind != WORLD_MODEL:
+            raise ConfigError(f"model options {options} are world-model settings; this is an autoencoder checkpoint")
+        task = dict(config["task"])
+        task["model"] = config_to_dict(load_config(WorldModelConfig, task.get("model", {}), options))
+        return {**config, "task": task}
+
+    return edit
+
+
 def _export(args: argparse.Namespace) -> int:
     from t3fast.errors import UsageError
     from t3fast.io.checkpoint import export_weights
@@ -30,6 +52,6 @@ def _export(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.out} is a folder; it names the file to write")
     if args.out.resolve() == args.ckpt.resolve():
         raise UsageError(f"{args.out}: writing over the checkpoint being exported would lose its training state")
-    size = export_weights(args.ckpt, args.out, DTYPES[args.dtype], args.model)
+    size = export_weights(args.ckpt, args.out, DTYPES[args.dtype], model_options(args.model) if args.model else None)
     print(f"wrote {args.out} ({size / 2**20:.1f} MiB, {args.dtype})")
     return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -129,28 +129,17 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
 
 
 def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16,
-                   model_options: Sequence[str] = ()) -> int:
+                   edit_config: Callable[[dict[str, Any], str | None], dict[str, Any]] | None = None) -> int:
     """Keep only what inference needs from a training checkpoint (model weights in ``dtype``,
     config, step), e.g. to ship it; returns the file size in bytes. Loading casts back to the
     model's dtype. ``src`` must be a stage-1 or stage-2 checkpoint (:func:`read_checkpoint`
-    says what it is otherwise), read once. ``model_options``: ``"key=value"`` settings of a
-    world model's config (:class:`~t3fast.models.config.WorldModelConfig`) to store instead of
-    the run's, e.g. ``"agent_boxes=true"``; refused (:class:`~t3fast.errors.ConfigError`) for an
-    autoencoder or where the result is not a valid config."""
-    from t3fast.errors import ConfigError
-    from t3fast.io.config import config_to_dict, load_config
-    from t3fast.models.config import WorldModelConfig
-
+    says what it is otherwise), read once. ``edit_config(config, kind)``: the config to store
+    instead of the run's (``kind``: :func:`checkpoint_kind`), e.g. an inference setting."""
     state = read_checkpoint(src, (AUTOENCODER, WORLD_MODEL))
     weights = {k: v.to(dtype) if v.is_floating_point() else v for k, v in state["model"].items()}
     config = state.get("config", {})
-    if model_options:
-        if checkpoint_kind(state) != WORLD_MODEL:
-            raise ConfigError(f"{src}: model options {list(model_options)} are world-model settings; this is an "
-                              "autoencoder checkpoint")
-        task = dict(config["task"])
-        task["model"] = config_to_dict(load_config(WorldModelConfig, task.get("model", {}), model_options))
-        config = {**config, "task": task}
+    if edit_config is not None:
+        config = edit_config(config, checkpoint_kind(state))
     save_checkpoint({"model": weights, "config": config, "step": state.get("step")}, dst)
     return Path(dst).stat().st_size
 

@@ -17,7 +17,7 @@ Each present agent (8-connected BEV component of vehicle and human columns,
 (nearest component of its class to where its last velocity puts it), and its box is the one
 whose footprint best separates the agent's columns from the columns around them in every
 frame where it was found: a soft inside/outside (a sigmoid of the signed distance to the
-footprint's edge, sharpened over the iterations) fitted by Adam, all agents of a frame at once.
+footprint's edge, sharpened over the iterations) fitted by Adam, all agents of a window at once.
 An agent is drawn as a box only where the fit explains its columns (IoU >= ``MIN_FIT_IOU``), it
 is of one class and it was seen in two frames or more; queued cars merged into one component
 or a truck with its trailer are not boxes, and move as voxels.

@@ -129,9 +129,8 @@ def boxed_agents(batch, mode: str) -> MethodOutput:
     scenes, draws = [], []
     for n in range(batch.past_occ.shape[0]):
         present = batch.past_occ[n, -1]
-        now = frame_agents(present, AGENTS)
         if mode == "fitted_boxes":
-            _, fit = fit_agent_boxes(batch.past_occ[n], poses[n, : PRESENT + 1])
+            now, fit = fit_agent_boxes(batch.past_occ[n], poses[n, : PRESENT + 1])  # now: the present's agents
             previous = warp_sequence(batch.past_occ[n : n + 1, -2:-1], poses[n : n + 1, PRESENT - 1 : PRESENT].float())
             before = frame_agents(previous[0, 0], AGENTS)
             voxels = ~fit.drawn[now["component"]]
@@ -143,6 +142,7 @@ def boxed_agents(batch, mode: str) -> MethodOutput:
             yaws = fit.yaw[d].expand(NUM_FUTURE, -1)
             draws.append((centres, yaws, fit.length[d], fit.width[d], fit.bottom[d], fit.top[d], fit.label[d], None))
         else:
+            now = frame_agents(present, AGENTS)
             scenes.append(present.masked_fill(now["mask"], FREE).expand(NUM_FUTURE, *present.shape).clone())
             box_poses, drawn = true_box_poses(batch.boxes[n], batch.box_valid[n], mode)
             boxes = batch.boxes[n, PRESENT].double()

@@ -112,3 +112,28 @@ def voxel_centers(axis: int) -> np.ndarray:
     """Centres (metres) of the voxels along ``axis`` (0 = x, 1 = y, 2 = z), shape ``[N]``."""
     n = GRID_SHAPE[axis]
     return GRID_LOWER[axis] + VOXEL_SIZE * (np.arange(n) + 0.5)
+
+
+def box_footprint(x: float, y: float, length: float, width: float, yaw: float, shape: tuple[int, int]
+                  ) -> tuple[slice, slice, np.ndarray] | None:
+    """The voxel columns a box covers in a grid of ``shape`` (X, Y) columns on this grid's
+    geometry: the rows and columns of its bounding window and, within it, bool ``[rows, cols]``
+    where a column's centre lies inside the footprint (centre ``x, y``, ``length`` along the
+    heading ``yaw``, ``width`` across; metres, radians), plus the column under the centre so
+    small agents never vanish. None when the window lies off the grid. How the synthetic data
+    voxelises an agent, and how a forecast draws one."""
+    lower = GRID_LOWER
+    reach = 0.5 * np.hypot(length, width)
+    i0, i1 = int((x - reach - lower[0]) / VOXEL_SIZE), int((x + reach - lower[0]) / VOXEL_SIZE) + 1
+    j0, j1 = int((y - reach - lower[1]) / VOXEL_SIZE), int((y + reach - lower[1]) / VOXEL_SIZE) + 1
+    i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, shape[0]), min(j1, shape[1])
+    if i0 >= i1 or j0 >= j1:
+        return None
+    dx = lower[0] + VOXEL_SIZE * (np.arange(i0, i1)[:, None] + 0.5) - x
+    dy = lower[1] + VOXEL_SIZE * (np.arange(j0, j1)[None, :] + 0.5) - y
+    c, s = np.cos(yaw), np.sin(yaw)
+    inside = (np.abs(c * dx + s * dy) <= length / 2) & (np.abs(-s * dx + c * dy) <= width / 2)
+    ci, cj = int(np.floor((x - lower[0]) / VOXEL_SIZE)), int(np.floor((y - lower[1]) / VOXEL_SIZE))
+    if i0 <= ci < i1 and j0 <= cj < j1:
+        inside[ci - i0, cj - j0] = True
+    return slice(i0, i1), slice(j0, j1), inside

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE
+from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, box_footprint
 from t3fast.models.agent_velocity import TRACK_GATE, frame_agents
 from t3fast.models.ego_motion import compose
 
@@ -261,28 +261,16 @@ def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor
     present frame (the boxes are taken into it)."""
     if centre.shape[0] == 0:
         return
-    nx, ny, nz = volume.shape
-    lower = torch.tensor(GRID_LOWER[:2], dtype=torch.float64)
     c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
     d = centre.double() - pose[:2].double()
-    local = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-    heading = yaw.double() - float(pose[2])
-    levels = torch.arange(nz)
-    for i in range(centre.shape[0]):
-        reach = 0.5 * math.hypot(float(length[i]), float(width[i]))
-        lo = ((local[i] - reach - lower) / VOXEL_SIZE).floor().long().clamp(min=0)
-        hi = ((local[i] + reach - lower) / VOXEL_SIZE).floor().long() + 1
-        hi = torch.minimum(hi, torch.tensor([nx, ny]))
-        if bool((lo >= hi).any()):
+    local = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1).tolist()
+    heading = (yaw.double() - float(pose[2])).tolist()
+    levels = torch.arange(volume.shape[2])
+    for i, ((x, y), h) in enumerate(zip(local, heading)):
+        footprint = box_footprint(x, y, float(length[i]), float(width[i]), h, volume.shape[:2])
+        if footprint is None:
             continue
-        xs = lower[0] + VOXEL_SIZE * (torch.arange(int(lo[0]), int(hi[0]), dtype=torch.float64) + 0.5)
-        ys = lower[1] + VOXEL_SIZE * (torch.arange(int(lo[1]), int(hi[1]), dtype=torch.float64) + 0.5)
-        dx, dy = xs[:, None] - local[i, 0], ys[None, :] - local[i, 1]
-        ch, sh = math.cos(float(heading[i])), math.sin(float(heading[i]))
-        inside = ((ch * dx + sh * dy).abs() <= length[i] / 2) & ((-sh * dx + ch * dy).abs() <= width[i] / 2)
-        ci, cj = ((local[i] - lower) / VOXEL_SIZE).floor().long().tolist()
-        if lo[0] <= ci < hi[0] and lo[1] <= cj < hi[1]:
-            inside[ci - lo[0], cj - lo[1]] = True
+        rows, cols, inside = footprint
         column = (levels >= bottom[i]) & (levels < top[i])
-        block = volume[lo[0] : hi[0], lo[1] : hi[1]]  # a view: filling it draws into the volume
-        block[(inside[:, :, None] & column).to(volume.device)] = int(label[i])
+        block = volume[rows, cols]  # a view: filling it draws into the volume
+        block[(torch.from_numpy(inside)[:, :, None] & column).to(volume.device)] = int(label[i])

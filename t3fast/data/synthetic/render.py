@@ -48,24 +48,11 @@ def draw_boxes(vol: np.ndarray, boxes: np.ndarray, labels: np.ndarray) -> None:
     A voxel column is filled when its centre lies inside the footprint; the column
     under the box centre is always filled so small agents never vanish.
     """
-    lo, vs = C.GRID_LOWER, C.VOXEL_SIZE
-    nx, ny, _ = vol.shape
     for (x, y, _z, length, width, height, yaw), label in zip(boxes, labels):
-        reach = 0.5 * np.hypot(length, width)
-        i0, i1 = int((x - reach - lo[0]) / vs), int((x + reach - lo[0]) / vs) + 1
-        j0, j1 = int((y - reach - lo[1]) / vs), int((y + reach - lo[1]) / vs) + 1
-        i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, nx), min(j1, ny)
-        if i0 >= i1 or j0 >= j1:
-            continue
-        dx = _XC[i0:i1, None] - x
-        dy = _YC[None, j0:j1] - y
-        c, s = np.cos(yaw), np.sin(yaw)
-        inside = (np.abs(c * dx + s * dy) <= length / 2) & (np.abs(-s * dx + c * dy) <= width / 2)
-        ci, cj = int(np.floor((x - lo[0]) / vs)), int(np.floor((y - lo[1]) / vs))
-        if i0 <= ci < i1 and j0 <= cj < j1:
-            inside[ci - i0, cj - j0] = True
-        top = z_level(height)
-        vol[i0:i1, j0:j1, ON_GROUND:top][inside] = label
+        footprint = C.box_footprint(x, y, length, width, yaw, vol.shape[:2])
+        if footprint is not None:
+            rows, cols, inside = footprint
+            vol[rows, cols, ON_GROUND : z_level(height)][inside] = label
 
 
 def box_z(height: np.ndarray) -> np.ndarray:

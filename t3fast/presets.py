@@ -17,6 +17,8 @@ from pathlib import Path
 
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.training.configs import (
+    BoxDataConfig,
+    BoxMotionConfig,
     FramesConfig,
     MotionConfig,
     PlanDataConfig,
@@ -29,7 +31,7 @@ from t3fast.training.configs import (
 )
 
 STAGES = {"ae": "stage-1 (autoencoder)", "wm": "stage-2 (world model)", "plan": "route planner",
-          "motion": "motion head"}
+          "motion": "motion head", "box": "box motion"}
 
 # ---------------------------------------------------------------- model sizes
 AUTOENCODER_SIZES = {
@@ -117,8 +119,10 @@ def _stage2_flow(name: str, **model) -> Stage2Config:
 _SMALL_AE = dict(train_scenes=100, steps=1500, batch_size=2, lr=2e-3, warmup_steps=100, log_every=25,
                  eval_every=500, ckpt_every=250)
 
+RunConfig = Stage1Config | Stage2Config | PlannerConfig | MotionConfig | BoxMotionConfig
+
 #: run name -> a fresh config of that run; the demo shows the world models in this order
-PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig | MotionConfig]] = {
+PRESETS: dict[str, Callable[[], RunConfig]] = {
     "ae-small": lambda: _stage1("small", **_SMALL_AE),
     "ae-small-bev": lambda: _stage1("small-bev", **_SMALL_AE),
     "ae-paper": lambda: _stage1("paper", steps=40_000, batch_size=10, lr=1e-3, warmup_steps=1000, log_every=100,
@@ -154,6 +158,12 @@ PRESETS: dict[str, Callable[[], Stage1Config | Stage2Config | PlannerConfig | Mo
         train=TrainConfig(steps=4800, batch_size=32, lr=1e-3, warmup_steps=200, log_every=50, eval_every=400,
                           eval_at_start=True, ckpt_every=200, out_dir="runs/motion-small"),
     ),
+    # the shipped world model's box motion network, trained on its own
+    "box-small": lambda: BoxMotionConfig(
+        world_model="wm-small", data=BoxDataConfig(train_scenes=560, select_scenes=40),
+        train=TrainConfig(steps=6000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
+                          eval_every=500, eval_at_start=True, ckpt_every=500, out_dir="runs/box-small"),
+    ),
     # full 6-step rollouts
     "wm-paper": lambda: Stage2Config(
         autoencoder_ckpt="runs/ae-paper/best.pt",
@@ -179,7 +189,7 @@ def run_name(name: str, stage: str | None = None) -> str | None:
     return full if full in PRESETS else None
 
 
-def preset(name: str, stage: str | None = None) -> Stage1Config | Stage2Config | PlannerConfig | MotionConfig:
+def preset(name: str, stage: str | None = None) -> RunConfig:
     """A fresh config of the run ``name`` (see :func:`run_name`)."""
     full = run_name(name, stage)
     if full is None:

@@ -1,4 +1,5 @@
-"""``t3fast train-ae``, ``t3fast train-wm``, ``t3fast train-planner`` and ``t3fast train-motion``."""
+"""``t3fast train-ae``, ``t3fast train-wm``, ``t3fast train-planner``, ``t3fast train-motion`` and
+``t3fast train-box-motion``."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def add_training_commands(sub: argparse._SubParsersAction) -> None:
     world.set_defaults(func=_train_wm)
 
     for name, part, func in (("train-planner", "route planner", _train_planner),
-                             ("train-motion", "motion head", _train_motion)):
+                             ("train-motion", "motion head", _train_motion),
+                             ("train-box-motion", "box motion network", _train_box_motion)):
         one = sub.add_parser(name, help=f"retrain a world model's {part} on its own, on many windows")
         one.add_argument("--config", default="small", help="preset (small) or a YAML/JSON file")
         one.add_argument("--wm", help=f"the world model whose {part} is retrained (overrides world_model)")
@@ -122,6 +124,13 @@ def _train_motion(args: argparse.Namespace) -> int:
     from t3fast.training.motion.task import MotionTask
 
     return _retrain_part(args, MotionTask, MotionConfig, "motion", ("forecaster",), "motion head")
+
+
+def _train_box_motion(args: argparse.Namespace) -> int:
+    from t3fast.training.box_motion.task import BoxMotionTask
+    from t3fast.training.configs import BoxMotionConfig
+
+    return _retrain_part(args, BoxMotionTask, BoxMotionConfig, "box", ("box_motion",), "box motion network")
 
 
 def _retrain_part(args: argparse.Namespace, task_cls, cfg_cls, stage: str, parts: tuple[str, ...], what: str) -> int:

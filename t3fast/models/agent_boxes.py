@@ -54,7 +54,11 @@ class AgentBoxes:
     in the present frame, metres: ``centre`` ``[n, 2]``, ``velocity`` ``[n, 2]`` per step,
     ``yaw`` ``[n]``, ``length``, ``width`` ``[n]``; ``bottom``, ``top`` ``[n]`` the levels the
     agent's voxels span (top exclusive); ``label`` ``[n]`` its class; ``drawn`` ``[n]`` bool:
-    the fit is trusted and the agent is drawn as this box."""
+    the fit is trusted and the agent is drawn as this box; ``track`` ``[n, T, 2]`` the agent's
+    column centroid in each observed frame (present frame, metres; NaN where it was not found);
+    ``future`` ``[S, n, 3]`` where a learned motion (:mod:`t3fast.models.box_motion`) placed each
+    box at every future step (centre, yaw; present frame), None to move them by their fitted
+    velocity."""
 
     centre: Tensor
     velocity: Tensor
@@ -65,6 +69,8 @@ class AgentBoxes:
     top: Tensor
     label: Tensor
     drawn: Tensor
+    track: Tensor | None = None
+    future: Tensor | None = None
 
 
 def _metres(cells: Tensor, pose: Tensor) -> Tensor:
@@ -214,7 +220,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
     empty = torch.zeros(n, dtype=torch.float64)
     if n == 0:
         return now, AgentBoxes(empty.view(0, 2), empty.view(0, 2), empty, empty, empty, empty.long(),
-                               empty.long(), now["cls"], empty.bool())
+                               empty.long(), now["cls"], empty.bool(), empty.view(0, frames.shape[0], 2))
     match = follow_agents(agents, poses)
     columns = (now["ids"] > 0).nonzero()
     owner = now["ids"][columns[:, 0], columns[:, 1]] - 1
@@ -249,7 +255,19 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
     bottom = torch.full((n,), frames.shape[-1], dtype=torch.long).scatter_reduce_(0, now["component"], z, "amin")
     top = torch.zeros(n, dtype=torch.long).scatter_reduce_(0, now["component"], z + 1, "amax")
     drawn = (iou >= MIN_FIT_IOU) & (votes.max(1).values == votes.sum(1)) & ((match >= 0).sum(1) >= 2)
-    return now, AgentBoxes(centre, velocity, yaw, length, width, bottom, top, now["cls"], drawn)
+    return now, AgentBoxes(centre, velocity, yaw, length, width, bottom, top, now["cls"], drawn,
+                           _tracks(agents, match, poses))
+
+
+def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Tensor:
+    """Each followed agent's column centroid in every frame (:func:`follow_agents`' ``match``
+    ``[n, T]``), in the present frame: ``[n, T, 2]`` metres, NaN where it was not found."""
+    track = torch.full((*match.shape, 2), math.nan, dtype=torch.float64)
+    for t, frame in enumerate(agents):
+        seen = match[:, t] >= 0
+        if bool(seen.any()):
+            track[seen, t] = _metres(frame["centroid"][match[seen, t]], poses[t])
+    return track
 
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,

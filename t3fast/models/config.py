@@ -131,6 +131,9 @@ class WorldModelConfig:
     # draw those agents as the boxes fitted to their columns in the past frames, moved by the same
     # displacement without rounding it to cells (t3fast.models.agent_boxes)
     agent_boxes: bool = False
+    # move those boxes by a learned network of their kinematics and the scene around them
+    # (t3fast.models.box_motion) instead of the forecaster's displacement
+    box_motion: bool = False
     history: int = 5
     steps: int = 6
     predict_delta: bool = True
@@ -200,11 +203,13 @@ class WorldModelConfig:
         if self.agent_boxes is True and self.render_agents is not True:
             raise ConfigError("'agent_boxes' draws the agents 'render_agents' moves as fitted boxes: it needs "
                               "render_agents=true")
+        if self.box_motion is True and self.agent_boxes is not True:
+            raise ConfigError("'box_motion' moves the fitted boxes 'agent_boxes' draws: it needs agent_boxes=true")
         if self.motion_context is True and not self.tracker_prior:
             raise ConfigError("'motion_context' gives the tracker prior's motion head the scene: it needs "
                               "tracker_prior=true")
         for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents",
-                    "agent_boxes", "motion_context"):
+                    "agent_boxes", "box_motion", "motion_context"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

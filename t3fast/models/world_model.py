@@ -24,6 +24,7 @@ from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
 from t3fast.models.agent_boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
 from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
+from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -197,6 +198,7 @@ class T3Former(nn.Module):
         static_from_present: bool = True,
         render_agents: bool = False,
         agent_boxes: bool = False,
+        box_motion: BoxMotionNet | None = None,
     ):
         super().__init__()
         self.encoder, self.forecaster, self.planner, self.decoder = encoder, forecaster, planner, decoder
@@ -206,7 +208,9 @@ class T3Former(nn.Module):
                              "it needs forecaster='flow'")
         if agent_boxes and not render_agents:
             raise ValueError("agent_boxes draws the agents render_agents moves as fitted boxes: it needs render_agents")
-        self.render_agents, self.agent_boxes = render_agents, agent_boxes
+        if box_motion is not None and not agent_boxes:
+            raise ValueError("box_motion moves the fitted boxes agent_boxes draws: it needs agent_boxes")
+        self.render_agents, self.agent_boxes, self.box_motion = render_agents, agent_boxes, box_motion
         self.encoder.requires_grad_(False)
         # the sizes it was built from (set by from_config): what a checkpoint records
         self.autoencoder_config: AutoencoderConfig | None = None
@@ -251,7 +255,8 @@ class T3Former(nn.Module):
         )
         model = cls(TriplaneEncoder(autoencoder), forecaster, planner, TriplaneDecoder.from_config(autoencoder),
                     ego_aligned=world.ego_aligned, static_from_present=world.static_from_present,
-                    render_agents=world.render_agents, agent_boxes=world.agent_boxes)
+                    render_agents=world.render_agents, agent_boxes=world.agent_boxes,
+                    box_motion=BoxMotionNet(world.history, world.steps) if world.box_motion else None)
         model.autoencoder_config, model.world_config = autoencoder, world
         return model
 
@@ -298,10 +303,18 @@ class T3Former(nn.Module):
         """Per sample, the boxes of the present's agents fitted to the past frames
         (:func:`~t3fast.models.agent_boxes.fit_agent_boxes`; labels ``[B, T, X, Y, Z]``, each in its
         own ego frame, planar poses ``[B, T, 3]`` in the present frame), what :meth:`render`
-        draws them with; None for a model that does not draw boxes."""
+        draws them with, and with a :attr:`box_motion` network where it moves them
+        (``AgentBoxes.future``); None for a model that does not draw boxes."""
         if not self.agent_boxes:
             return None
-        return [fit_agent_boxes(occupancy[n], poses[n])[1] for n in range(occupancy.shape[0])]
+        fits = []
+        for n in range(occupancy.shape[0]):
+            now, fit = fit_agent_boxes(occupancy[n], poses[n])
+            if self.box_motion is not None:
+                ego_velocity = -poses[n, -2, :2].cpu()  # the ego's last step: from the previous pose to the origin
+                fit.future = predict_box_poses(self.box_motion, occupancy[n, -1], fit, now["ids"], ego_velocity)
+            fits.append(fit)
+        return fits
 
     @torch.no_grad()
     def decode_frames(self, futures: list[Triplane], poses: Tensor) -> Tensor:
@@ -386,6 +399,7 @@ class T3Former(nn.Module):
         points: list[Tensor] | None = None, motion: bool = False, velocity: Tensor | None = None,
         plan_from: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
         motion_from: tuple[Tensor, Tensor, Tensor] | None = None,
+        boxes_from: tuple[Tensor, Tensor] | None = None,
     ) -> (tuple[list[Triplane], Tensor, list[Tensor] | None] | tuple[list[Triplane], Tensor, Tensor, Tensor | None]
           | tuple[Tensor, Tensor] | Tensor):
         """Training rollout: :meth:`rollout` plus decoder logits ``[B, N, K]`` of each future
@@ -406,8 +420,15 @@ class T3Former(nn.Module):
         velocities ``[B, 4, H, W]``, the present and previous xy planes ``[B, C, H, W]``), only the
         flow forecaster's displacements of the tracked agents ``[B, S, 2, H, W]``
         (:meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.tracked_motion`; the motion
-        head trained on its own, :mod:`t3fast.training.motion`).
+        head trained on its own, :mod:`t3fast.training.motion`). With ``past`` None and
+        ``boxes_from`` (agents' views ``[n, C, A, W]`` and kinematics ``[n, F]``), only the box
+        motion network's corrections ``[n, S, 3]`` (:class:`~t3fast.models.box_motion.BoxMotionNet`,
+        trained on its own: :mod:`t3fast.training.box_motion`).
         """
+        if past is None and boxes_from is not None:
+            if self.box_motion is None:
+                raise ValueError("boxes_from is the box motion network's input: it needs world_config.box_motion")
+            return self.box_motion(*boxes_from)
         if past is None and motion_from is not None:
             if not getattr(self.forecaster, "tracker_prior", False):
                 raise ValueError("motion_from is the motion head's input: it needs the flow forecaster with "
@@ -579,8 +600,12 @@ class T3Former(nn.Module):
         for n, (fitted, as_box, shift) in enumerate(drawn):
             if bool(as_box.any()):
                 for k in range(labels.shape[1]):
-                    centre = fitted.centre[as_box] + shift[k, as_box.to(shift.device)].cpu() * VOXEL_SIZE
-                    draw_agent_boxes(labels[n, k], centre, fitted.yaw[as_box], fitted.length[as_box],
+                    if fitted.future is None:
+                        centre = fitted.centre[as_box] + shift[k, as_box.to(shift.device)].cpu() * VOXEL_SIZE
+                        yaw = fitted.yaw[as_box]
+                    else:
+                        centre, yaw = fitted.future[k, as_box, :2], fitted.future[k, as_box, 2]
+                    draw_agent_boxes(labels[n, k], centre, yaw, fitted.length[as_box],
                                      fitted.width[as_box], fitted.bottom[as_box], fitted.top[as_box],
                                      fitted.label[as_box], poses[n, k].cpu())
         return labels

@@ -244,6 +244,33 @@ class PlannerConfig:
 
 
 @dataclass
+class BoxDataConfig:
+    """The windows the box motion network trains and is selected on: synthetic train-split scenes,
+    the last ``select_scenes`` of them held out to select it (the validation and test splits stay
+    for scoring the forecast)."""
+
+    train_scenes: int = 560
+    select_scenes: int = 40
+    stride: int = 4  # frames between consecutive windows
+    frames_per_scene: int = 40
+    cache_dir: str = "runs/cache"
+
+    def __post_init__(self) -> None:
+        _at_least("data.", self, {"train_scenes": 1, "select_scenes": 1, "stride": 1})
+
+
+@dataclass
+class BoxMotionConfig:
+    """Everything ``t3fast train-box-motion`` needs: a box motion network
+    (:mod:`t3fast.models.box_motion`) for a world model that draws fitted boxes, trained on its
+    own; the rest of the world model stays as it is."""
+
+    world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (model.agent_boxes must be true)
+    data: BoxDataConfig = field(default_factory=BoxDataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+@dataclass
 class MotionConfig:
     """Everything ``t3fast train-motion`` needs: the motion head of a trained world model's flow
     forecaster trained anew on its own, on many windows; the rest stays as it is."""

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
 from t3fast.data.sample import PRESENT
+from t3fast.models.box_motion import rotate
 
 
 def plane_cell_centres(shape: tuple[int, int], device: torch.device) -> Tensor:
@@ -30,16 +31,11 @@ def plane_cell_centres(shape: tuple[int, int], device: torch.device) -> Tensor:
     return torch.stack(torch.meshgrid(x, y, indexing="ij"), dim=-1)
 
 
-def _rotate(v: Tensor, yaw: Tensor) -> Tensor:
-    c, s = yaw.cos(), yaw.sin()
-    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], dim=-1)
-
-
 def _inside(points: Tensor, box: Tensor, margin: float) -> tuple[Tensor, Tensor]:
     """Which of the plane cells' centres ``points`` ``[1, 1, HW, 2]`` lie inside each box
     ``[B, A, 7]`` grown by ``margin``: mask ``[B, A, HW]``, and the cells' coordinates on each
     box ``[B, A, HW, 2]``."""
-    local = _rotate(points - box[:, :, None, :2], -box[:, :, None, 6])
+    local = rotate(points - box[:, :, None, :2], -box[:, :, None, 6])
     return (local.abs() <= box[:, :, None, 3:5] / 2 + margin).all(-1), local
 
 
@@ -93,7 +89,7 @@ def agent_motion(
     displacements, moving, static, agents = [], [], [], []
     for frame in range(PRESENT + 1, t):
         future = boxes[:, frame]
-        target = future[:, :, None, :2] + _rotate(local, future[:, :, None, 6])  # the same point then
+        target = future[:, :, None, :2] + rotate(local, future[:, :, None, 6])  # the same point then
         offset = (target - points) / cell  # [B, A, HW, 2] in cells
         picked = offset.gather(1, owner.clamp(min=0).view(b, 1, h * w, 1).expand(-1, 1, -1, 2)).squeeze(1)
         seen = (box_valid[:, frame] & box_valid[:, PRESENT]).gather(1, owner.clamp(min=0)) & covered_now  # [B, HW]

@@ -1,0 +1,143 @@
+"""The box motion network's own :class:`~t3fast.training.task.Task`: a trained world model that
+draws its agents as fitted boxes gets a :class:`~t3fast.models.box_motion.BoxMotionNet`, trained
+on many cached windows (:mod:`t3fast.training.box_motion.box_cache`), everything else frozen.
+
+The loss is each agent's landing error (:func:`~t3fast.training.box_motion.loss.landing_errors`:
+metres between its predicted and true box at every future step), averaged per class and then
+over the classes (:func:`~t3fast.training.box_motion.loss.class_balanced_mean`), with agents
+mirrored left-right at random. ``best.pt`` follows the same error on windows of held-out
+training-split scenes; each evaluation also scores the box tracker (the network at zero: the
+fitted constant velocity) on them. Checkpoints are whole world models with
+``model.box_motion = true``: ``t3fast eval`` and ``t3fast export`` take them as they are.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.errors import ConfigError
+from t3fast.evaluation.planning import HORIZONS as STEPS_AT
+from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
+from t3fast.models.box_motion import BoxMotionNet, corrected_motion, mirror_kinematics, mirror_views, rotate
+from t3fast.models.world_model import T3Former
+from t3fast.pretrained import resolve, world_model_from_checkpoint
+from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records
+from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
+from t3fast.training.configs import BoxMotionConfig
+from t3fast.training.distributed import barrier, is_main
+
+VAL_CHUNK = 4096  # agents per forward pass in evaluation
+
+
+def mirror_agents(batch: dict[str, Tensor], flip: Tensor, frames: int) -> dict[str, Tensor]:
+    """The agents of ``batch`` where ``flip`` ``[n]`` (bool) is set mirrored across their own
+    heading line: views, kinematics (of ``frames`` observed frames), fitted velocity, true
+    displacements and turns (the heading stays)."""
+    out = dict(batch)
+    out["views"] = torch.where(flip[:, None, None, None], mirror_views(batch["views"]), batch["views"])
+    out["features"] = torch.where(flip[:, None], mirror_kinematics(batch["features"], frames), batch["features"])
+    for key in ("velocity", "displacement"):
+        value = batch[key]
+        shape = (-1,) + (1,) * (value.dim() - 2)
+        heading = batch["heading"].view(shape).expand(value.shape[:-1])
+        local = rotate(value, -heading)
+        local = torch.where(flip.view(*shape, 1), local * local.new_tensor([1.0, -1.0]), local)
+        out[key] = rotate(local, heading)
+    out["turn"] = torch.where(flip[:, None], -batch["turn"], batch["turn"])
+    return out
+
+
+def agent_errors(correction: Tensor, batch: dict[str, Tensor]) -> Tensor:
+    """Per agent and step ``[n, S]``, the landing error of the boxes moved by ``correction``."""
+    displacement, turn = corrected_motion(batch["velocity"], batch["heading"], correction)
+    return landing_errors(displacement, turn, batch)
+
+
+class BoxMotionTask:
+    """Trains a box motion network for ``cfg.world_model`` alone (see the module doc)."""
+
+    def __init__(self, cfg: BoxMotionConfig):
+        self.cfg = copy.deepcopy(cfg)
+        self._state = read_checkpoint(resolve(self.cfg.world_model), WORLD_MODEL)
+        if not self._state["config"]["task"].get("model", {}).get("agent_boxes"):
+            raise ConfigError(f"world_model {self.cfg.world_model!r} does not draw fitted boxes: train-box-motion "
+                              "needs model.agent_boxes = true")
+        self._model: T3Former | None = None
+        self._select: BoxMotionSamples | None = None
+        self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
+
+    def build_model(self) -> nn.Module:
+        """The world model with a new box motion network (zero correction: the box tracker);
+        every other weight from ``cfg.world_model``, frozen."""
+        model = world_model_from_checkpoint(self._state, self.cfg.world_model)
+        model.requires_grad_(False)
+        model.box_motion = BoxMotionNet(model.forecaster.history, model.forecaster.steps)
+        self._model = model
+        return model
+
+    def _samples(self, first: int, count: int, name: str) -> BoxMotionSamples:
+        data = self.cfg.data
+        windows = SyntheticDriving("train", first + count, data.frames_per_scene, stride=data.stride)
+        per_scene = len(windows) // (first + count)
+        indices = list(range(first * per_scene, (first + count) * per_scene))
+        path = Path(data.cache_dir) / "box-motion" / f"{name}-scenes{first}-{first + count}-stride{data.stride}.pt"
+        if is_main():
+            build_records(windows, indices, path, desc=f"box fits ({name})")
+        barrier()
+        return BoxMotionSamples(build_records(windows, indices, path))
+
+    def train_dataset(self) -> BoxMotionSamples:
+        return self._samples(0, self.cfg.data.train_scenes, "train")
+
+    def collate(self, items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+        return {key: torch.stack([item[key] for item in items]) for key in items[0]}
+
+    def samples_in(self, batch: dict[str, Tensor]) -> int:
+        return batch["views"].shape[0]
+
+    def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        flip = (torch.rand(self.samples_in(batch), generator=self._generator) < 0.5).to(batch["views"].device)
+        batch = mirror_agents(batch, flip, self._frames(model))
+        correction = model(None, None, boxes_from=(batch["views"].float(), batch["features"]))
+        loss = class_balanced_mean(agent_errors(correction, batch), batch)
+        with torch.no_grad():
+            tracker = class_balanced_mean(agent_errors(torch.zeros_like(correction), batch), batch)
+        return loss, {"tracker": tracker.item()}
+
+    def _frames(self, model: nn.Module) -> int:
+        return getattr(model, "module", model).box_motion.frames
+
+    def evaluate(self, model: nn.Module) -> dict[str, float]:
+        """On the held-out scenes' agents, the class-balanced landing error (metres) of the
+        network's boxes and of the box tracker's, over all steps and at 1, 2 and 3 s;
+        ``ratio``: network / tracker; ``score``: minus the network's error."""
+        if self._select is None:
+            self._select = self._samples(self.cfg.data.train_scenes, self.cfg.data.select_scenes, "select")
+        device = next(model.parameters()).device
+        fields = {k: v.to(device) for k, v in self._select.fields.items()}
+        corrections = torch.cat([model.box_motion(self._select.views[i : i + VAL_CHUNK].to(device).float(),
+                                                  fields["features"][i : i + VAL_CHUNK])
+                                 for i in range(0, len(self._select), VAL_CHUNK)])
+        values = {}
+        for name, correction in (("net", corrections), ("tracker", torch.zeros_like(corrections))):
+            errors = agent_errors(correction, fields)
+            values[name] = class_balanced_mean(errors, fields).item()
+            for horizon, steps in STEPS_AT.items():
+                at = {k: v[:, steps - 1 : steps] if k in ("displacement", "turn", "valid") else v
+                      for k, v in fields.items()}
+                values[f"{name}_{horizon}"] = class_balanced_mean(errors[:, steps - 1 : steps], at).item()
+        values["ratio"] = values["net"] / max(values["tracker"], 1e-9)
+        values["score"] = -values["net"]
+        return values
+
+    def config_dict(self) -> dict:
+        """The world model's config with ``model.box_motion`` on (checkpoints are world-model
+        checkpoints)."""
+        config = copy.deepcopy(self._state["config"]["task"])
+        config["model"]["box_motion"] = True
+        return config

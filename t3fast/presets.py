@@ -161,7 +161,7 @@ PRESETS: dict[str, Callable[[], RunConfig]] = {
     # the shipped world model's box motion network, trained on its own
     "box-small": lambda: BoxMotionConfig(
         world_model="wm-small", data=BoxDataConfig(train_scenes=560, select_scenes=40),
-        train=TrainConfig(steps=6000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
+        train=TrainConfig(steps=16000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
                           eval_every=500, eval_at_start=True, ckpt_every=500, out_dir="runs/box-small"),
     ),
     # full 6-step rollouts

@@ -41,14 +41,22 @@ def test_export_refuses_to_overwrite_its_source_or_a_folder(tmp_path, capsys):
 
 def test_export_ships_model_options_checked(tmp_path, capsys):
     """``--model key=value`` stores an inference setting instead of the run's, validated."""
+    # the shipped model without its box motion network: drawing boxes is then a setting alone
+    state = load_checkpoint(SHIPPED_WM)
+    state["model"] = {k: v for k, v in state["model"].items() if not k.startswith("box_motion.")}
+    state["config"]["task"]["model"]["box_motion"] = False
+    source = tmp_path / "no-box-motion.pt"
+    torch.save(state, source)
     out = tmp_path / "wm.pt"
-    assert t3fast.load_world_model("wm-small").agent_boxes
-    assert main(["export", str(SHIPPED_WM), str(out), "--model", "agent_boxes=false"]) == 0
+    assert t3fast.load_world_model(source).agent_boxes
+    assert main(["export", str(source), str(out), "--model", "agent_boxes=false"]) == 0
     exported = t3fast.load_world_model(out)
     assert not exported.agent_boxes and exported.render_agents
     assert load_checkpoint(out)["config"]["task"]["model"]["agent_boxes"] is False
-    assert main(["export", str(SHIPPED_WM), str(tmp_path / "bad.pt"), "--model", "render_agents=false"]) != 0
+    assert main(["export", str(source), str(tmp_path / "bad.pt"), "--model", "render_agents=false"]) != 0
     assert "'agent_boxes' draws the agents 'render_agents' moves" in capsys.readouterr().err
+    assert main(["export", str(SHIPPED_WM), str(tmp_path / "bad.pt"), "--model", "agent_boxes=false"]) != 0
+    assert "'box_motion' moves the fitted boxes 'agent_boxes' draws" in capsys.readouterr().err
     assert main(["export", str(SHIPPED_WM), str(tmp_path / "bad.pt"), "--model", "no_such_option=1"]) != 0
     assert "no_such_option" in capsys.readouterr().err
     assert not (tmp_path / "bad.pt").exists()

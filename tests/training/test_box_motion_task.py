@@ -17,7 +17,7 @@ from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.box_motion import BOX_CLASSES, BoxMotionNet, rotate
 from t3fast.models.ego_motion import planar_poses
 from t3fast.pretrained import load_world_model
-from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records
+from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records, window_record
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
 from t3fast.training.box_motion.task import BoxMotionTask, agent_errors, mirror_agents
 from t3fast.training.configs import BoxMotionConfig
@@ -166,3 +166,16 @@ def test_box_motion_needs_agent_boxes(world_ckpt):
 def test_a_rotation_turns_counter_clockwise():
     torch.testing.assert_close(rotate(torch.tensor([1.0, 0.0]), torch.tensor(torch.pi / 2)), torch.tensor([0.0, 1.0]),
                                atol=1e-6, rtol=0)
+
+
+def test_a_window_without_annotated_boxes_gives_no_agents(records):
+    from dataclasses import replace
+
+    windows, _ = records
+    sample = windows[1]
+    hidden = window_record(replace(sample, box_valid=torch.zeros_like(sample.box_valid)))
+    none = window_record(replace(sample, boxes=sample.boxes[:, :0], box_valid=sample.box_valid[:, :0],
+                                 box_labels=sample.box_labels[:0]))
+    for record in (hidden, none):
+        assert record["centre"].shape == (0, 2) and record["displacement"].shape == (0, 6, 2)
+        assert record["groups"].any()  # the scene is still there

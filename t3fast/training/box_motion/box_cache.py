@@ -20,7 +20,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
-from t3fast.data.sample import PRESENT, collate_samples
+from t3fast.data.sample import PRESENT, DrivingSample, collate_samples
 from t3fast.models import agent_boxes, box_motion
 from t3fast.models.agent_boxes import fit_agent_boxes
 from t3fast.models.box_motion import agent_headings, context_map, crop_context, kinematics, wrap_angle
@@ -39,9 +39,10 @@ def cache_key(dataset_name: str, indices: list[int]) -> str:
     return digest.hexdigest()[:16]
 
 
-def window_record(sample) -> dict[str, Tensor]:
-    """One window's record: ``context`` (groups uint8 ``[G, X, Y]`` and velocity float16
-    ``[2, X, Y]``) and per drawn agent with a true box: ``centre`` ``[n, 2]``, ``heading``,
+def window_record(sample: DrivingSample) -> dict[str, Tensor]:
+    """One window's record: its :func:`context_map` as ``groups`` (uint8 ``[G, X, Y]``) and
+    ``velocity_map`` (float16 ``[2, X, Y]``), and per drawn agent with a true box: ``centre``
+    ``[n, 2]``, ``heading``,
     ``velocity`` ``[n, 2]``, ``features`` ``[n, F]``, the true ``displacement`` ``[n, S, 2]``
     (present frame, metres), ``turn`` ``[n, S]`` and ``valid`` ``[n, S]``."""
     batch = collate_samples([sample])
@@ -52,9 +53,12 @@ def window_record(sample) -> dict[str, Tensor]:
     drawn = fit.drawn.nonzero().flatten()
     dist = (fit.centre[drawn, None] - boxes[PRESENT, None, :, :2]).norm(dim=-1)
     dist[:, ~valid[PRESENT]] = float("inf")
-    near, owner = dist.min(1) if dist.shape[1] else (dist.new_full((len(drawn),), float("inf")), None)
+    if dist.shape[1]:
+        near, owner = dist.min(1)
+    else:  # no annotated box: nobody has a target
+        near, owner = dist.new_full((len(drawn),), float("inf")), torch.zeros_like(drawn)
     keep = near <= MATCH_METRES
-    agents, owner = drawn[keep], owner[keep] if owner is not None else drawn[keep]
+    agents, owner = drawn[keep], owner[keep]
     heading = agent_headings(fit)
     future = boxes[PRESENT + 1 :, owner]  # [S, m, 7]
     return {

@@ -21,8 +21,6 @@ moves them, and training has to beat it.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
@@ -70,6 +68,12 @@ CROP_CELL = 0.5  # metres per crop cell
 CROP_BEHIND = 8.0  # metres of the crop behind the agent's centre
 MOVING_STEP = 0.1  # metres per step above which an agent's frame follows its velocity, not its box
 HIDDEN = 128
+
+
+def ego_step(poses: Tensor) -> Tensor:
+    """The ego's last step ``[2]`` (metres, present frame) from the planar poses ``[T, 3]`` of the
+    observed frames in the present frame: from the previous pose to the origin."""
+    return -poses[-2, :2]
 
 
 def rotate(v: Tensor, angle: Tensor) -> Tensor:
@@ -162,8 +166,9 @@ def mirror_views(views: Tensor) -> Tensor:
     return torch.cat([out[:, :-1], -out[:, -1:]], 1)
 
 
-def mirror_kinematics(features: Tensor, frames: int) -> Tensor:
+def mirror_kinematics(features: Tensor) -> Tensor:
     """:func:`kinematics` of the left-right mirrored agents (their lateral components negated)."""
+    frames = (features.shape[1] - kinematic_features(1)) // 3 + 1
     sign = torch.ones(features.shape[1], device=features.device)
     sign[1] = -1
     sign[4 : 3 + 2 * (frames - 1) : 2] = -1
@@ -231,8 +236,3 @@ def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, age
     views = crop_context(context_map(present, boxes, agent_ids, ego_velocity).to(device), boxes.centre, heading)
     correction = net(views, kinematics(boxes, heading).to(device)).cpu()
     return future_poses(boxes, heading, correction)
-
-
-def wrap_angle(angle: Tensor) -> Tensor:
-    """Angles wrapped to ``[-pi, pi)``."""
-    return (angle + math.pi) % (2 * math.pi) - math.pi

@@ -42,17 +42,18 @@ def compose(a: Tensor, b: Tensor) -> Tensor:
     c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return torch.stack([x, y, _wrap(a[..., 2] + b[..., 2])], dim=-1)
+    return torch.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], dim=-1)
 
 
 def relative(a: Tensor, b: Tensor) -> Tensor:
     """Pose ``b`` in frame ``a`` (both given in one reference frame): ``a^-1 * b``, ``[..., 3]``."""
     c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    return torch.stack([c * dx + s * dy, -s * dx + c * dy, _wrap(b[..., 2] - a[..., 2])], dim=-1)
+    return torch.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], dim=-1)
 
 
-def _wrap(angle: Tensor) -> Tensor:
+def wrap_angle(angle: Tensor) -> Tensor:
+    """Angles wrapped to ``[-pi, pi)``."""
     return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
 
 

@@ -24,7 +24,7 @@ from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
 from t3fast.models.agent_boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
 from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
-from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
+from t3fast.models.box_motion import BoxMotionNet, ego_step, predict_box_poses
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -311,8 +311,8 @@ class T3Former(nn.Module):
         for n in range(occupancy.shape[0]):
             now, fit = fit_agent_boxes(occupancy[n], poses[n])
             if self.box_motion is not None:
-                ego_velocity = -poses[n, -2, :2].cpu()  # the ego's last step: from the previous pose to the origin
-                fit.future = predict_box_poses(self.box_motion, occupancy[n, -1], fit, now["ids"], ego_velocity)
+                fit.future = predict_box_poses(self.box_motion, occupancy[n, -1], fit, now["ids"],
+                                               ego_step(poses[n].cpu()))
             fits.append(fit)
         return fits
 

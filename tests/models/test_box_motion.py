@@ -60,8 +60,8 @@ def test_kinematics_are_read_in_the_agents_own_frame_and_mirror_exactly():
     # the same agents mirrored across the x axis: the features are mirror_kinematics of the originals
     mirrored = _boxes(boxes.track * torch.tensor([1.0, -1.0], dtype=torch.float64),
                       boxes.velocity * torch.tensor([1.0, -1.0], dtype=torch.float64), -boxes.yaw, [CAR, PEDESTRIAN])
-    assert torch.allclose(kinematics(mirrored, agent_headings(mirrored)), mirror_kinematics(features, 5), atol=1e-6)
-    assert torch.equal(mirror_kinematics(mirror_kinematics(features, 5), 5), features)
+    assert torch.allclose(kinematics(mirrored, agent_headings(mirrored)), mirror_kinematics(features), atol=1e-6)
+    assert torch.equal(mirror_kinematics(mirror_kinematics(features)), features)
 
 
 def test_a_still_agent_keeps_the_frame_of_its_box():

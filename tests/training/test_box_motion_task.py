@@ -72,10 +72,10 @@ def test_mirroring_keeps_every_agents_error_and_twice_is_the_identity(records):
     flip = torch.arange(len(samples)) % 2 == 0
     torch.manual_seed(0)
     correction = torch.randn(len(samples), 6, 3)
-    mirrored = mirror_agents(batch, flip, 5)
+    mirrored = mirror_agents(batch, flip)
     flipped = torch.where(flip[:, None, None], correction * torch.tensor([1.0, -1.0, -1.0]), correction)
     torch.testing.assert_close(agent_errors(flipped, mirrored), agent_errors(correction, batch))
-    twice = mirror_agents(mirrored, flip, 5)
+    twice = mirror_agents(mirrored, flip)
     for key in ("views", "features", "velocity", "displacement", "turn"):
         torch.testing.assert_close(twice[key], batch[key], atol=1e-5, rtol=0)
 

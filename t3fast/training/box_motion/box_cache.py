@@ -23,8 +23,8 @@ from tqdm import tqdm
 from t3fast.data.sample import PRESENT, DrivingSample, collate_samples
 from t3fast.models import agent_boxes, box_motion
 from t3fast.models.agent_boxes import fit_agent_boxes
-from t3fast.models.box_motion import agent_headings, context_map, crop_context, kinematics, wrap_angle
-from t3fast.models.ego_motion import planar_poses
+from t3fast.models.box_motion import agent_headings, context_map, crop_context, ego_step, kinematics
+from t3fast.models.ego_motion import planar_poses, wrap_angle
 
 MATCH_METRES = 1.0
 GROUPS = len(box_motion.CONTEXT_GROUPS)
@@ -48,7 +48,7 @@ def window_record(sample: DrivingSample) -> dict[str, Tensor]:
     batch = collate_samples([sample])
     poses = planar_poses(batch.ego_poses, PRESENT).double()[0]
     now, fit = fit_agent_boxes(batch.past_occ[0], poses[: PRESENT + 1])
-    context = context_map(batch.past_occ[0, -1], fit, now["ids"], -poses[PRESENT - 1, :2])
+    context = context_map(batch.past_occ[0, -1], fit, now["ids"], ego_step(poses[: PRESENT + 1]))
     boxes, valid = batch.boxes[0].double(), batch.box_valid[0]
     drawn = fit.drawn.nonzero().flatten()
     dist = (fit.centre[drawn, None] - boxes[PRESENT, None, :, :2]).norm(dim=-1)

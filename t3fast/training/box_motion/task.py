@@ -24,7 +24,6 @@ from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet, corrected_motion, mirror_kinematics, mirror_views, rotate
-from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
@@ -34,13 +33,13 @@ from t3fast.training.distributed import barrier, is_main
 VAL_CHUNK = 4096  # agents per forward pass in evaluation
 
 
-def mirror_agents(batch: dict[str, Tensor], flip: Tensor, frames: int) -> dict[str, Tensor]:
+def mirror_agents(batch: dict[str, Tensor], flip: Tensor) -> dict[str, Tensor]:
     """The agents of ``batch`` where ``flip`` ``[n]`` (bool) is set mirrored across their own
-    heading line: views, kinematics (of ``frames`` observed frames), fitted velocity, true
-    displacements and turns (the heading stays)."""
+    heading line: views, kinematics, fitted velocity, true displacements and turns (the heading
+    stays)."""
     out = dict(batch)
     out["views"] = torch.where(flip[:, None, None, None], mirror_views(batch["views"]), batch["views"])
-    out["features"] = torch.where(flip[:, None], mirror_kinematics(batch["features"], frames), batch["features"])
+    out["features"] = torch.where(flip[:, None], mirror_kinematics(batch["features"]), batch["features"])
     for key in ("velocity", "displacement"):
         value = batch[key]
         shape = (-1,) + (1,) * (value.dim() - 2)
@@ -67,7 +66,6 @@ class BoxMotionTask:
         if not self._state["config"]["task"].get("model", {}).get("agent_boxes"):
             raise ConfigError(f"world_model {self.cfg.world_model!r} does not draw fitted boxes: train-box-motion "
                               "needs model.agent_boxes = true")
-        self._model: T3Former | None = None
         self._select: BoxMotionSamples | None = None
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
 
@@ -77,7 +75,6 @@ class BoxMotionTask:
         model = world_model_from_checkpoint(self._state, self.cfg.world_model)
         model.requires_grad_(False)
         model.box_motion = BoxMotionNet(model.forecaster.history, model.forecaster.steps)
-        self._model = model
         return model
 
     def _samples(self, first: int, count: int, name: str) -> BoxMotionSamples:
@@ -86,10 +83,10 @@ class BoxMotionTask:
         per_scene = len(windows) // (first + count)
         indices = list(range(first * per_scene, (first + count) * per_scene))
         path = Path(data.cache_dir) / "box-motion" / f"{name}-scenes{first}-{first + count}-stride{data.stride}.pt"
-        if is_main():
-            build_records(windows, indices, path, desc=f"box fits ({name})")
+        # rank 0 builds (or reads) the records; the others read what it wrote
+        records = build_records(windows, indices, path, desc=f"box fits ({name})") if is_main() else None
         barrier()
-        return BoxMotionSamples(build_records(windows, indices, path))
+        return BoxMotionSamples(records if records is not None else build_records(windows, indices, path))
 
     def train_dataset(self) -> BoxMotionSamples:
         return self._samples(0, self.cfg.data.train_scenes, "train")
@@ -102,15 +99,12 @@ class BoxMotionTask:
 
     def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         flip = (torch.rand(self.samples_in(batch), generator=self._generator) < 0.5).to(batch["views"].device)
-        batch = mirror_agents(batch, flip, self._frames(model))
+        batch = mirror_agents(batch, flip)
         correction = model(None, None, boxes_from=(batch["views"].float(), batch["features"]))
         loss = class_balanced_mean(agent_errors(correction, batch), batch)
         with torch.no_grad():
             tracker = class_balanced_mean(agent_errors(torch.zeros_like(correction), batch), batch)
         return loss, {"tracker": tracker.item()}
-
-    def _frames(self, model: nn.Module) -> int:
-        return getattr(model, "module", model).box_motion.frames
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """On the held-out scenes' agents, the class-balanced landing error (metres) of the
@@ -128,8 +122,7 @@ class BoxMotionTask:
             errors = agent_errors(correction, fields)
             values[name] = class_balanced_mean(errors, fields).item()
             for horizon, steps in STEPS_AT.items():
-                at = {k: v[:, steps - 1 : steps] if k in ("displacement", "turn", "valid") else v
-                      for k, v in fields.items()}
+                at = {"features": fields["features"], "valid": fields["valid"][:, steps - 1 : steps]}
                 values[f"{name}_{horizon}"] = class_balanced_mean(errors[:, steps - 1 : steps], at).item()
         values["ratio"] = values["net"] / max(values["tracker"], 1e-9)
         values["score"] = -values["net"]

@@ -15,6 +15,7 @@ import math
 import torch
 
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
+from t3fast.models.ego_motion import wrap_angle
 from t3fast.models.triplane import Triplane
 from t3fast.training.world_model.latent_cache import AlignedBatch
 
@@ -46,7 +47,7 @@ def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: boo
         velocity = velocity.transpose(-2, -1).unflatten(1, (-1, 2)).flip(2).flatten(1, 2)  # (x, y) pairs swap
         boxes[..., [0, 1]], yaw = boxes[..., [1, 0]], math.pi / 2 - yaw
         past, future = past[..., [1, 0]], future[..., [1, 0]]
-    boxes[..., 6] = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    boxes[..., 6] = wrap_angle(yaw)
     boxes[~batch.box_valid] = 0.0
     return AlignedBatch(Triplane(xy.contiguous(), xz, yz), boxes, batch.box_valid, past, future,
                         velocity.contiguous())

@@ -101,8 +101,12 @@ def all_gather_object(obj: Any) -> list[Any]:
 
 
 def cleanup() -> None:
-    """Leave the process group, if one is active."""
+    """Leave the process group, if one is active, once every process has got here."""
     if is_distributed():
+        # A collective's work object holds its tensors until a gloo worker thread drops it, which
+        # can come after the caller has its result; dropped during interpreter shutdown, it needs
+        # the GIL and aborts the process. A barrier holds no tensors and waits for that work.
+        dist.barrier()
         dist.destroy_process_group()
 
 

@@ -158,12 +158,11 @@ PRESETS: dict[str, Callable[[], RunConfig]] = {
         train=TrainConfig(steps=4800, batch_size=32, lr=1e-3, warmup_steps=200, log_every=50, eval_every=400,
                           eval_at_start=True, ckpt_every=200, out_dir="runs/motion-small"),
     ),
-    # the shipped world model's box motion network, trained on its own; on boxes fitted at constant
-    # velocity 16,000 steps overfit after 9,000; on the acceleration fits 8,000 end within 1 mm of the
-    # best held-out landing error (step 7,000)
+    # the shipped world model's box motion network, trained on its own; on 560 scenes it overfit after
+    # 9,000 of 16,000 steps, on 1080 it no longer does (best at 13,500)
     "box-small": lambda: BoxMotionConfig(
-        world_model="wm-small", data=BoxDataConfig(train_scenes=560, select_scenes=40),
-        train=TrainConfig(steps=8000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
+        world_model="wm-small", data=BoxDataConfig(train_scenes=1080, select_scenes=40),
+        train=TrainConfig(steps=16000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
                           eval_every=500, eval_at_start=True, ckpt_every=500, out_dir="runs/box-small"),
     ),
     # full 6-step rollouts

@@ -83,8 +83,8 @@ def test_the_fit_finds_a_moving_car_and_a_walking_pedestrian_to_centimetres():
 
 
 def test_the_fitted_velocity_of_a_braking_car_is_its_present_one():
-    """A car braking at 0.25 m per step^2 moved 1.5 m in its last step and 2.5 m on average over
-    the five frames: the fit's velocity is the present one, not the mean."""
+    """A car braking at 0.25 m per step^2 moved 1.625 m in its last step and 2 m a step on
+    average over the five frames: the fit's velocity is the present one, not the mean."""
     car = [6.4, 2.1, 0.3, 4.6, 1.9, 1.6, 0.12]
     heading = torch.tensor([math.cos(car[6]), math.sin(car[6])], dtype=torch.float64)
     speed_now, decel = 1.5, 0.25
@@ -95,11 +95,12 @@ def test_the_fitted_velocity_of_a_braking_car_is_its_present_one():
         return [[car[0] + float(heading[0]) * travelled, car[1] + float(heading[1]) * travelled, *car[2:]]]
 
     poses = _moving_ego()
-    now, fit = fit_agent_boxes(_scene(boxes_at, poses, [CAR]), poses)
+    _, fit = fit_agent_boxes(_scene(boxes_at, poses, [CAR]), poses)
     assert fit.drawn.all()
     present = speed_now * heading + 0.5 * decel * heading  # the last step's displacement
     mean = (torch.tensor(boxes_at(4)[0][:2]) - torch.tensor(boxes_at(0)[0][:2])).double() / 4
     assert (fit.velocity[0] - present).norm() < 0.15 < float((mean - present).norm())
+
 
 def test_drawn_boxes_are_the_columns_the_data_fills():
     """:func:`draw_agent_boxes` voxelises a box as the synthetic data does (column centres inside

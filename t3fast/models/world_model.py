@@ -145,8 +145,12 @@ def split_past_motion(motion: Tensor) -> tuple[Tensor, Tensor]:
 
 def check_finite(name: str, values: Tensor) -> None:
     """Raises :class:`UsageError` naming ``name`` and the index of its first NaN or infinity (a
-    non-finite pose or displacement would make the whole forecast NaN)."""
-    if not values.is_floating_point():
+    non-finite pose or displacement would make the whole forecast NaN). Skipped inside
+    ``torch.compile`` graphs and CUDA graph capture, where reading a value back from the device
+    would break the graph: eager calls check."""
+    if not values.is_floating_point() or torch.compiler.is_compiling():
+        return
+    if values.is_cuda and torch.cuda.is_current_stream_capturing():
         return
     bad = ~torch.isfinite(values)
     if bool(bad.any()):

@@ -201,6 +201,24 @@ def test_pushforward_history_is_the_models_own_forecast():
     assert teacher["triplane"] != pytest.approx(pushed, rel=1e-3)  # ground-truth history differs
 
 
+def test_rollout_trains_under_autocast():
+    """Mixed precision (the trainer's AMP; CPU autocast here): the forecaster's low-precision
+    Delta meets the float32 planes in the fused delta op, and the loss and every forecaster
+    gradient come out finite."""
+    model = tiny_world_model().train()
+    occ = shifting_sequence()
+    with torch.no_grad():
+        planes = model.encode_sequence(occ)
+    cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, values = rollout_loss(model, planes, occ, torch.zeros(1, 4, 2), torch.ones(1, 6, 2), 0, 6, cfg)
+    loss.backward()
+    assert torch.isfinite(loss) and all(np.isfinite(v) for v in values.values())
+    grads = [p.grad for p in model.forecaster.parameters()]
+    assert all(g is not None and bool(torch.isfinite(g).all()) for g in grads)
+    assert any(bool(g.abs().sum() > 0) for g in grads)
+
+
 def test_aligned_window_keeps_a_static_world_still():
     # a static world seen by an ego driving 0.8 m (2 voxels) per frame along x: moved into the
     # present frame, every frame shows the present's content wherever that frame saw it

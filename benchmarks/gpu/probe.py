@@ -1,8 +1,10 @@
 """What the machine and the build are: ``python -m benchmarks.gpu.probe env|build --out FILE``.
 
 ``env``: Python, torch, CUDA, cuDNN and NCCL versions, the GPUs torch sees, nvcc and ninja.
-``build``: ``t3fast.build_info()`` plus where ``t3fast`` was imported from; with
-``--expect-cuda`` it exits 1 unless the kernels were built with CUDA and a GPU is visible.
+``build``: ``t3fast.build_info()`` plus where ``t3fast`` was imported from and whether a bad call
+raises its error (checked in a child process: a C++ runtime that does not match the compiler
+can crash while the error message is formatted); with ``--expect-cuda`` it exits 1 unless the
+kernels were built with CUDA, a GPU is visible and errors raise.
 """
 
 from __future__ import annotations
@@ -66,6 +68,30 @@ def environment() -> dict:
     return info
 
 
+# A call the kernels refuse with a message that formats integers (argmax needs 1 to 256 classes).
+_BAD_CALL = """
+import torch
+from t3fast.ops import triplane_decode
+planes = [torch.zeros(1, 4, 3, 3), torch.zeros(1, 4, 3, 2), torch.zeros(1, 4, 3, 2)]
+try:
+    triplane_decode(*planes, [torch.zeros(300, 4)], [torch.zeros(300)], grid=(2, 2, 2), pe_freqs=0, argmax=True)
+except RuntimeError as exc:
+    print(exc)
+"""
+
+
+def error_check() -> tuple[bool, str]:
+    """Whether a refused call raises its RuntimeError (run in a child: a crash must not end us)."""
+    try:
+        out = subprocess.run([sys.executable, "-c", _BAD_CALL], capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        return False, "the refused call did not return in 120 s"
+    message = out.stdout.strip()
+    if out.returncode == 0 and "got 300" in message:
+        return True, message
+    return False, f"exit status {out.returncode}: {(message + ' ' + out.stderr.strip())[-300:]}"
+
+
 def build() -> dict:
     import torch
 
@@ -74,6 +100,7 @@ def build() -> dict:
     info = dict(t3fast.build_info())
     info["imported_from"] = str(Path(t3fast.__file__).resolve().parent)
     info["gpu_visible"] = torch.cuda.is_available()
+    info["errors_raise"], info["error_check"] = error_check()
     return info
 
 
@@ -91,6 +118,9 @@ def main(argv: list[str] | None = None) -> int:
         ok = info.get("cuda") if args.what == "build" else info.get("cuda_available")
         if not ok or not info.get("gpu_visible", info.get("cuda_available")):
             print("expected CUDA kernels and a visible GPU", file=sys.stderr)
+            return 1
+        if args.what == "build" and not info["errors_raise"]:
+            print(f"a refused call crashed instead of raising: {info['error_check']}", file=sys.stderr)
             return 1
     return 0
 

@@ -71,6 +71,7 @@ class Context:
     arch: str
     jobs: int
     nproc: int
+    compilers: dict[str, str] = field(default_factory=dict)  # CC / CXX of the build; empty: the environment's
 
     @property
     def cuda(self) -> bool:
@@ -102,7 +103,7 @@ def _env_steps(ctx: Context, d: Path) -> list[Step]:
 def _build_steps(ctx: Context, d: Path) -> list[Step]:
     steps = []
     if ctx.cuda:
-        env = {"FORCE_CUDA": "1", "TORCH_CUDA_ARCH_LIST": ctx.arch, "MAX_JOBS": str(ctx.jobs)}
+        env = {"FORCE_CUDA": "1", "TORCH_CUDA_ARCH_LIST": ctx.arch, "MAX_JOBS": str(ctx.jobs), **ctx.compilers}
         steps.append(Step("build_ext", [PY, "setup.py", "build_ext", "--inplace"], env))
     steps.append(Step("build_info", [PY, f"{HERE}/probe.py", "build", "--out", str(d / "build_info.json")]
                       + (["--expect-cuda"] if ctx.cuda else [])))
@@ -143,12 +144,13 @@ def _check_ops(ctx: Context, d: Path) -> tuple[bool, str]:
 
 def _forecast_steps(ctx: Context, d: Path) -> list[Step]:
     """One process per group of modes: a failed CUDA-graph capture or compilation cannot spoil
-    the others, and a time-out ends only the last (slowest) group."""
-    sizes = "tiny" if ctx.quick else "small,paper"
-    groups = {"eager": "eager"} if ctx.quick else {
-        "eager": "eager,eager-reference", "cuda-graph": "cuda-graph", "compile": "compile"}
+    the others, and a time-out ends only the last (slowest) group. Compilation takes minutes
+    (the six-step rollout is traced whole), so each size compiles in its own process, small first."""
+    groups = {"eager": ("tiny", "eager")} if ctx.quick else {
+        "eager": ("small,paper", "eager,eager-reference"), "cuda-graph": ("small,paper", "cuda-graph"),
+        "compile-small": ("small", "compile"), "compile-paper": ("paper", "compile")}
     steps = []
-    for name, modes in groups.items():
+    for name, (sizes, modes) in groups.items():
         argv = [PY, f"{HERE}/forecast.py", "--device", ctx.device, "--sizes", sizes, "--modes", modes,
                 "--out", str(d / "results.jsonl")]
         steps.append(Step(f"forecast-{name}", argv + (["--quick"] if ctx.quick else [])))
@@ -238,10 +240,22 @@ STAGES = [
     Stage("build", "CUDA build", 240, 30, _build_steps, _check_json("build_info.json")),
     Stage("tests", "CUDA tests", 150, 45, _test_steps, _check_tests),
     Stage("ops", "op benchmarks", 120, 45, _ops_steps, _check_ops),
-    Stage("forecast", "forecasting step", 150, 60, _forecast_steps, _check_forecast),
+    Stage("forecast", "forecasting step", 270, 60, _forecast_steps, _check_forecast),
     Stage("train_ae", "train-ae burst", 80, 45, _train_ae_steps, _check_train),
     Stage("train_wm", "train-wm burst", 100, 60, _train_wm_steps, _check_train),
 ]
+
+
+def build_compilers(cxx: str | None) -> dict[str, str]:
+    """CC and CXX for the build. The distribution's g++ by default: an image may point CXX at a
+    wrapper whose builds crash (in std::ostream) the moment a kernel formats a number into an
+    error message, a C++ runtime mismatch that the build stage's error check catches."""
+    if cxx is None:
+        cxx = "/usr/bin/g++" if Path("/usr/bin/g++").is_file() else None
+    if cxx is None:
+        return {}
+    cc = Path(cxx).with_name(Path(cxx).name.replace("g++", "gcc").replace("c++", "cc"))
+    return {"CXX": cxx, "CC": str(cc)} if cc.is_file() else {"CXX": cxx}
 
 
 # ---- running ---------------------------------------------------------------------------------
@@ -410,6 +424,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="parallel compile jobs (MAX_JOBS)")
     parser.add_argument("--keep-checkpoints", action="store_true",
                         help="keep the bursts' checkpoints and triplane cache (hundreds of MB at paper size)")
+    parser.add_argument("--cxx", default=None,
+                        help="C++ compiler of the build (CC: the gcc beside it); default: /usr/bin/g++ where "
+                             "there is one, else the environment's CXX")
     parser.add_argument("--nproc", type=int, default=None,
                         help="torchrun processes (default: every GPU; 2 on the CPU)")
     args = parser.parse_args(argv)
@@ -423,7 +440,8 @@ def main(argv: list[str] | None = None) -> int:
     budget = args.budget or (400.0 if args.quick else 540.0)
     out = args.outdir.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    ctx = Context(out=out, device=args.device, quick=args.quick, arch=args.arch, jobs=args.jobs, nproc=nproc)
+    ctx = Context(out=out, device=args.device, quick=args.quick, arch=args.arch, jobs=args.jobs, nproc=nproc,
+                  compilers=build_compilers(args.cxx))
     summary = run_stages(ctx, stages, budget)
     if not args.keep_checkpoints:
         drop_checkpoints(out)

@@ -14,6 +14,7 @@ from t3fast.models.box_motion import (
     CROP,
     CROP_BEHIND,
     CROP_CELL,
+    STILL_STEP,
     VEHICLES,
     BoxMotionNet,
     agent_headings,
@@ -140,6 +141,22 @@ def test_the_untrained_network_moves_boxes_at_their_fitted_velocity():
                    torch.zeros(0, dtype=torch.float64), [])
     assert predict_box_poses(net, present, empty, torch.zeros(200, 200, dtype=torch.long),
                              torch.zeros(2)).shape == (6, 0, 3)
+
+
+def test_a_standing_agent_keeps_its_present_pose_whatever_the_network_says():
+    boxes = _braking_car_and_walker()
+    boxes.velocity[1] = torch.tensor([0.1, -0.1], dtype=torch.float64)  # 0.14 m/step: the fit's noise
+    correction = torch.zeros(2, 6, 3, dtype=torch.float64)
+    correction[..., 0], correction[..., 2] = 0.5, 0.2
+    heading = agent_headings(boxes)
+    poses = future_poses(boxes, heading, correction)
+    present = torch.cat([boxes.centre[1], boxes.yaw[1:]])
+    assert torch.equal(poses[:, 1], present.expand(6, 3))
+    displacement, turn = corrected_motion(boxes.velocity, heading, correction)
+    assert torch.allclose(poses[:, 0, :2], boxes.centre[0] + displacement[0])  # the car drives on
+    assert torch.allclose(poses[:, 0, 2], boxes.yaw[0] + turn[0])
+    boxes.velocity[1] = torch.tensor([STILL_STEP, 0.0], dtype=torch.float64)  # as fast: it walks
+    assert not torch.equal(future_poses(boxes, heading, correction)[:, 1], present.expand(6, 3))
 
 
 def test_the_network_reads_both_the_view_and_the_kinematics():

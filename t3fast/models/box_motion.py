@@ -213,6 +213,19 @@ class BoxMotionNet(nn.Module):
         return out.view(-1, self.steps, 3)
 
 
+MIRROR_CORRECTION = (1.0, -1.0, -1.0)  # a mirrored agent's correction: along, across (negated), yaw change (negated)
+
+
+def symmetric_correction(net: BoxMotionNet, views: Tensor, features: Tensor) -> Tensor:
+    """``net``'s correction ``[n, S, 3]`` averaged over each agent and its left-right mirror image
+    (:func:`mirror_views`, :func:`mirror_kinematics`; the mirror's correction mirrored back), so
+    that a mirrored scene gets exactly the mirrored motion. The network is trained on both at
+    random; on 40 windows of unused training scenes along the true poses the average moved the
+    boxes better than one pass: moving-class mIoU 42.57 -> 43.06 (bicycles 27.5 -> 30.1)."""
+    mirrored = net(mirror_views(views), mirror_kinematics(features)) * views.new_tensor(MIRROR_CORRECTION)
+    return (net(views, features) + mirrored) / 2
+
+
 def corrected_motion(velocity: Tensor, heading: Tensor, correction: Tensor) -> tuple[Tensor, Tensor]:
     """The displacements ``[n, S, 2]`` (present frame, metres) and yaw changes ``[n, S]`` of agents
     with fitted ``velocity`` ``[n, 2]`` (metres per step) and frame ``heading`` ``[n]``: the
@@ -235,7 +248,8 @@ def future_poses(boxes: AgentBoxes, heading: Tensor, correction: Tensor) -> Tens
 
 def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, agent_ids: Tensor,
                       ego_velocity: Tensor) -> Tensor:
-    """:func:`future_poses` of the agents of ``boxes`` as ``net`` moves them, reading the present
+    """:func:`future_poses` of the agents of ``boxes`` as ``net`` moves them
+    (:func:`symmetric_correction`), reading the present
     labels ``[X, Y, Z]`` whose agent map is ``agent_ids`` ``[X, Y]`` and the ego's last step
     ``ego_velocity`` ``[2]`` (see :func:`context_map`)."""
     n = boxes.centre.shape[0]
@@ -244,5 +258,5 @@ def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, age
     heading = agent_headings(boxes)
     device = next(net.parameters()).device
     views = crop_context(context_map(present, boxes, agent_ids, ego_velocity).to(device), boxes.centre, heading)
-    correction = net(views, kinematics(boxes, heading).to(device)).cpu()
+    correction = symmetric_correction(net, views, kinematics(boxes, heading).to(device)).cpu()
     return future_poses(boxes, heading, correction)

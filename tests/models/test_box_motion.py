@@ -27,6 +27,7 @@ from t3fast.models.box_motion import (
     mirror_kinematics,
     mirror_views,
     predict_box_poses,
+    symmetric_correction,
 )
 
 
@@ -157,6 +158,19 @@ def test_a_standing_agent_keeps_its_present_pose_whatever_the_network_says():
     assert torch.allclose(poses[:, 0, 2], boxes.yaw[0] + turn[0])
     boxes.velocity[1] = torch.tensor([STILL_STEP, 0.0], dtype=torch.float64)  # as fast: it walks
     assert not torch.equal(future_poses(boxes, heading, correction)[:, 1], present.expand(6, 3))
+
+
+def test_the_symmetric_correction_of_a_mirrored_agent_is_the_mirrored_correction():
+    torch.manual_seed(0)
+    net = BoxMotionNet()
+    torch.nn.init.normal_(net.head[-1].weight, std=0.1)  # a trained-like head: not symmetric by itself
+    views = torch.rand(3, CONTEXT_CHANNELS, *CROP)
+    features = torch.randn(3, kinematic_features(5))
+    flip = torch.tensor([1.0, -1.0, -1.0])
+    got = symmetric_correction(net, mirror_views(views), mirror_kinematics(features))
+    assert torch.allclose(got, symmetric_correction(net, views, features) * flip, atol=1e-6)
+    one_pass = net(mirror_views(views), mirror_kinematics(features))
+    assert not torch.allclose(one_pass, net(views, features) * flip, atol=1e-3)
 
 
 def test_the_network_reads_both_the_view_and_the_kinematics():

@@ -159,9 +159,9 @@ PRESETS: dict[str, Callable[[], RunConfig]] = {
                           eval_at_start=True, ckpt_every=200, out_dir="runs/motion-small"),
     ),
     # the shipped world model's box motion network, trained on its own; on 560 scenes it overfit after
-    # 9,000 of 16,000 steps, on 1080 it no longer does (best at 13,500)
+    # 9,000 of 16,000 steps, on 1080 it no longer does (best at 13,500), on 1620 best at 15,000
     "box-small": lambda: BoxMotionConfig(
-        world_model="wm-small", data=BoxDataConfig(train_scenes=1080, select_scenes=40),
+        world_model="wm-small", data=BoxDataConfig(train_scenes=1620, select_scenes=40),
         train=TrainConfig(steps=16000, batch_size=256, lr=1e-3, warmup_steps=100, weight_decay=1e-4, log_every=100,
                           eval_every=500, eval_at_start=True, ckpt_every=500, out_dir="runs/box-small"),
     ),

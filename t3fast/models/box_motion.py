@@ -222,8 +222,9 @@ def symmetric_correction(net: BoxMotionNet, views: Tensor, features: Tensor) -> 
     that a mirrored scene gets exactly the mirrored motion. The network is trained on both at
     random; on 40 windows of unused training scenes along the true poses the average moved the
     boxes better than one pass: moving-class mIoU 42.57 -> 43.06 (bicycles 27.5 -> 30.1)."""
-    mirrored = net(mirror_views(views), mirror_kinematics(features)) * views.new_tensor(MIRROR_CORRECTION)
-    return (net(views, features) + mirrored) / 2
+    n = views.shape[0]
+    both = net(torch.cat([views, mirror_views(views)]), torch.cat([features, mirror_kinematics(features)]))
+    return (both[:n] + both[n:] * views.new_tensor(MIRROR_CORRECTION)) / 2  # one batched pass
 
 
 def corrected_motion(velocity: Tensor, heading: Tensor, correction: Tensor) -> tuple[Tensor, Tensor]:

@@ -205,14 +205,17 @@ torch.library.register_autograd(
 )
 
 
-
 # ---------------------------------------------------------------- autocast
-def _autocast(op: str, device_type: str):
+_autocast_lib = torch.library.Library("t3fast", "IMPL")
+
+
+def _register_autocast(op: str, device_type: str) -> None:
     """``op`` under autocast on ``device_type``: its floating inputs other than float64 cast to
     the autocast dtype on CUDA (as ``conv2d`` runs, whose 1x1 case ``delta_fuse`` fuses), to
     float32 on the CPU, whose kernels have no lower precision; so that a tensor from an autocast
     layer meets float32 planes and weights in one dtype."""
-    key = getattr(torch._C.DispatchKey, "Autocast" + torch._C._dispatch_key_for_device(device_type))
+    key = "Autocast" + torch._C._dispatch_key_for_device(device_type)
+    excluded = torch._C.DispatchKeySet(getattr(torch._C.DispatchKey, key))
     overload = getattr(ops, op).default
 
     def kernel(_keyset, *args):
@@ -225,16 +228,14 @@ def _autocast(op: str, device_type: str):
                 return a.to(dtype)
             return a
 
-        with torch._C._ExcludeDispatchKeyGuard(torch._C.DispatchKeySet(key)):
+        with torch._C._ExcludeDispatchKeyGuard(excluded):
             return overload(*(cast(a) for a in args))
 
-    return kernel
+    _autocast_lib.impl(op, kernel, key, with_keyset=True)
 
 
-_autocast_lib = torch.library.Library("t3fast", "IMPL")
 # On CUDA only delta_fuse mixes an autocast output with float32 parameters: the decoder casts
 # its planes itself (it decodes in its weights' dtype) and axis_pool reads one tensor.
 for _op, _device_type in (("delta_fuse", "cuda"), ("delta_fuse", "cpu"), ("axis_pool", "cpu"),
                           ("triplane_decode", "cpu")):
-    _autocast_lib.impl(_op, _autocast(_op, _device_type),
-                       "Autocast" + torch._C._dispatch_key_for_device(_device_type), with_keyset=True)
+    _register_autocast(_op, _device_type)

@@ -30,7 +30,6 @@ def test_delta_fuse_runs_as_conv2d(device):
     torch.testing.assert_close(weight.grad, prev.detach().sum((0, 2, 3)).expand(4, 3), rtol=2e-2, atol=2e-2)
 
 
-
 def test_cpu_kernels_run_in_float32():
     """The CPU kernels have no bfloat16: under CPU autocast the ops compute in float32."""
     volume = rand(2, 3, 5, 4, 6).to(torch.bfloat16)

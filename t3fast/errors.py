@@ -28,6 +28,10 @@ class UsageError(T3fastError):
     """A command-line argument is out of range or contradicts another."""
 
 
+class DivergenceError(T3fastError):
+    """Training cannot go on: its loss or its weights are no longer finite numbers."""
+
+
 #: Raised by user input rather than by bugs; the CLI reports them in one line.
 #: OSError covers missing files, permissions, a file where a folder is needed, a full disk.
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)

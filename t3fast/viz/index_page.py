@@ -114,9 +114,9 @@ def _legend(names: list[str]) -> str:
 
 
 def _href(path: Path, out_dir: Path) -> str:
-    """A relative URL from ``out_dir`` to ``path`` (a path relative to ``out_dir`` or absolute)."""
-    target = path if path.is_absolute() else out_dir / path
-    return quote(Path(os.path.relpath(target, out_dir)).as_posix())
+    """A URL of ``path`` relative to a page in ``out_dir`` (both absolute or relative to the
+    current folder). Resolved first, so ``..`` and symbolic links count as the filesystem sees them."""
+    return quote(Path(os.path.relpath(path.resolve(), out_dir.resolve())).as_posix())
 
 
 def write_index(out_dir: str | Path, results: dict[str, dict], title: str, pictures: list[Path],
@@ -125,8 +125,9 @@ def write_index(out_dir: str | Path, results: dict[str, dict], title: str, pictu
 
     results: the ``metrics.json`` mapping (method -> scores, see
     :func:`t3fast.evaluation.report.evaluate_methods`); pictures: PNG/GIF files shown inline;
-    views: 3D viewer pages linked. Both as paths relative to ``out_dir`` or absolute; the
-    page links them relatively, so the folder can be moved as a whole.
+    views: 3D viewer pages linked. All paths as the file writers return them: absolute or
+    relative to the current folder (not to ``out_dir``); the page links them relative to
+    itself, so the folder can be moved as a whole.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

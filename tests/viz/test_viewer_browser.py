@@ -64,7 +64,6 @@ def _top_classes(occ: np.ndarray, k: int) -> list[int]:
 def test_page_loads_without_errors(runs):
     for name in ("dom", 0, FUTURE_STEP):
         assert runs[name].console_errors() == [], runs[name].console_errors()
-        assert runs[name].seconds < 30
     attributes = runs["dom"].body_attributes()
     assert 'data-ready="1"' in attributes and "data-error" not in attributes, attributes
 

@@ -29,13 +29,20 @@ names, and poses finite with unit quaternions. :func:`read_infos` checks every f
 above (shapes, dtypes, box counts that agree, values finite in float32) and names the scene,
 the frame index and token and the field. :func:`read_labels` checks each array's shape and
 dtype from its ``.npy`` header before decompressing it.
+
+A small pickle can claim a huge array (nested lists that repeat one inner list object are
+stored once), so every field's size is bounded before it becomes an array: a frame holds at
+most :data:`MAX_BOXES` boxes, and each field at most the values of its ``FIELD_LIMITS`` entry,
+counting every entry of its nested lists.
 """
 
 from __future__ import annotations
 
 import lzma
+import reprlib
 import zipfile
 import zlib
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -201,6 +208,32 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
     return infos
 
 
+#: the most boxes a frame may hold (nuScenes frames hold a few hundred)
+MAX_BOXES = 20_000
+#: the most future steps of a box's trajectory (info files hold 6 or 12)
+MAX_AGENT_STEPS = 20
+#: values a field of a small fixed shape may hold: room for a wrong shape to be named as such
+SMALL_FIELD_VALUES = 1_000
+#: how deep lists may nest in a numeric field (a (N, steps, 2) trajectory nests 3 deep); the
+#: bound also stops a list that contains itself
+MAX_NESTING = 8
+
+#: field -> (the most values it may hold, every entry of its nested lists counted, so that
+#: a box row given as a list of 7 numbers counts 8; what that limit is for, for the message)
+FIELD_LIMITS: dict[str, tuple[int, str]] = {
+    "ego2global_translation": (SMALL_FIELD_VALUES, "a field of shape (3,)"),
+    "ego2global_rotation": (SMALL_FIELD_VALUES, "a field of shape (4,)"),
+    "lidar2ego_translation": (SMALL_FIELD_VALUES, "a field of shape (3,)"),
+    "lidar2ego_rotation": (SMALL_FIELD_VALUES, "a field of shape (4,)"),
+    "gt_ego_fut_trajs": (SMALL_FIELD_VALUES, f"a field of shape ({NUM_FUTURE}, 2)"),
+    "gt_ego_fut_masks": (SMALL_FIELD_VALUES, f"a field of shape ({NUM_FUTURE},)"),
+    "gt_ego_fut_cmd": (SMALL_FIELD_VALUES, f"a field of shape ({len(COMMANDS)},)"),
+    "gt_boxes": (MAX_BOXES * (1 + 7), f"{MAX_BOXES:,} boxes"),
+    "gt_agent_fut_trajs": (MAX_BOXES * (1 + 3 * MAX_AGENT_STEPS),
+                           f"{MAX_BOXES:,} boxes of {MAX_AGENT_STEPS} steps"),
+    "gt_agent_fut_masks": (MAX_BOXES * (1 + MAX_AGENT_STEPS), f"{MAX_BOXES:,} boxes of {MAX_AGENT_STEPS} steps"),
+}
+
 #: how far from 1 a quaternion's norm may be (float32 round-off is ~1e-7)
 QUATERNION_TOLERANCE = 1e-3
 
@@ -221,12 +254,89 @@ def _finite_vector(value: Any, size: int, key: str, where: str) -> np.ndarray:
     return vec
 
 
+def _short_repr() -> reprlib.Repr:
+    """A ``repr`` whose work and length stay small however large or deeply shared the value is."""
+    short = reprlib.Repr()
+    short.maxlevel, short.maxstring, short.maxother = 3, 40, 40
+    short.maxlist = short.maxtuple = short.maxdict = short.maxset = 4
+    return short
+
+
+_SHORT_REPR = _short_repr()
+
+
 def _describe(value: Any) -> str:
     """``str 'xx'``, ``int 5``, ``ndarray <U3 (4,)``: what a field holds, for a message."""
     if isinstance(value, np.ndarray):
         return f"ndarray of {value.dtype} with shape {value.shape}"
-    text = repr(value)
+    if _huge_int(value):  # its repr is slow, or refused past 4300 digits
+        return f"{type(value).__name__} of {value.bit_length()} bits"
+    text = _SHORT_REPR.repr(value)
     return f"{type(value).__name__} {text if len(text) <= 40 else text[:37] + '...'}"
+
+
+def _huge_int(value: Any) -> bool:
+    """An int of more than 64 bits: no token or count is that large."""
+    return isinstance(value, int) and value.bit_length() > 64
+
+
+#: what a numeric field may hold besides lists, tuples and arrays (bool is an int)
+_NUMBER_TYPES = (int, float, np.integer, np.floating, np.bool_)
+
+
+def _check_bounded_numbers(value: Any, key: str, where: str) -> None:
+    """Refuse ``value`` if its nested lists hold more entries than ``key``'s limit in
+    :data:`FIELD_LIMITS`, are nested deeper than :data:`MAX_NESTING`, or hold anything but
+    numbers, before numpy builds an array from it.
+
+    Strings are refused here too, as numpy would give every entry the longest one's width.
+    """
+    limit, allows = FIELD_LIMITS[key]
+    _EntryCounter(key, where, limit, allows).count(value, 0)
+
+
+class _EntryCounter:
+    """Counts the entries of a field's nested lists, tuples and arrays, every entry of every
+    level included, and refuses the field once the count passes its limit.
+
+    Each list object is counted once and remembered, so lists that repeat one inner list many
+    times (which a pickle stores once) cost what the file holds, not what they claim.
+    """
+
+    def __init__(self, key: str, where: str, limit: int, allows: str):
+        self.key, self.where, self.limit, self.allows = key, where, limit, allows
+        self.known: dict[int, int] = {}  # id of a list already counted -> its entries
+
+    def count(self, item: Any, depth: int) -> int:
+        """Entries in ``item`` (0 for a number), refusing what is not a number or too large."""
+        if isinstance(item, _NUMBER_TYPES):
+            return 0
+        if id(item) in self.known:
+            return self.known[id(item)]
+        if isinstance(item, np.ndarray) and item.dtype.kind in "biuf":
+            return self._within_limit(item.size)
+        if isinstance(item, np.ndarray) and item.dtype.kind == "O":
+            children = item.ravel()
+        elif isinstance(item, (list, tuple)):
+            children = item
+        else:
+            raise Occ3DFormatError(f"{self.where}: {self.key!r} must hold numbers, got {_describe(item)}")
+        if depth == MAX_NESTING:
+            raise Occ3DFormatError(f"{self.where}: {self.key!r} has lists nested more than {MAX_NESTING} deep")
+        total = self._within_limit(len(children))
+        for child in children:
+            if not isinstance(child, _NUMBER_TYPES):  # numbers add nothing: skip the call
+                total = self._within_limit(total + self.count(child, depth + 1))
+        self.known[id(item)] = total
+        return total
+
+    def _within_limit(self, total: int) -> int:
+        if total > self.limit:
+            raise Occ3DFormatError(
+                f"{self.where}: {self.key!r} holds more than {self.limit:,} values counting every entry of its "
+                f"nested lists (the limit for {self.allows})"
+            )
+        return total
 
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -236,13 +346,15 @@ def _numbers(value: Any, key: str, where: str) -> np.ndarray:
     """``value`` as a float64 array, refused unless it holds numbers that are finite in float32.
 
     Samples are float32, so a value such as 1e300 (finite in float64) counts as non-finite.
+    ``value``'s size is checked against ``key``'s limit first (:func:`_check_bounded_numbers`).
     """
+    _check_bounded_numbers(value, key, where)
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError) as exc:  # e.g. ragged nested lists
         raise Occ3DFormatError(f"{where}: {key!r} is not an array of numbers ({exc})") from exc
     if arr.dtype.kind == "O" and all(isinstance(x, (int, float, np.number)) for x in arr.flat):
-        arr = arr.astype(np.float64)
+        arr = _object_numbers_as_float64(arr, key, where)
     if arr.dtype.kind not in "biuf":
         raise Occ3DFormatError(f"{where}: {key!r} must hold numbers, got {_describe(value)}")
     arr = arr.astype(np.float64)
@@ -258,6 +370,26 @@ def _numbers(value: Any, key: str, where: str) -> np.ndarray:
     return arr
 
 
+def _object_numbers_as_float64(arr: np.ndarray, key: str, where: str) -> np.ndarray:
+    """An object array of numbers as float64; an integer beyond float64's range is non-finite."""
+    try:
+        return arr.astype(np.float64)
+    except OverflowError:
+        index, big = next((i, x) for i, x in np.ndenumerate(arr) if not _fits_float(x))
+        raise Occ3DFormatError(
+            f"{where}: {key!r} has a non-finite value in float32 "
+            f"(first at index {index}: an integer of {big.bit_length()} bits)"
+        ) from None
+
+
+def _fits_float(number: Any) -> bool:
+    try:
+        float(number)
+    except OverflowError:
+        return False
+    return True
+
+
 def _strings(value: Any, key: str, where: str, kinds: str = "U") -> np.ndarray:
     """A 1-D sequence (list, tuple or array) of strings (``kinds`` "U") or strings and integers ("Ui")."""
     if isinstance(value, np.ndarray):
@@ -269,13 +401,16 @@ def _strings(value: Any, key: str, where: str, kinds: str = "U") -> np.ndarray:
         raise Occ3DFormatError(f"{where}: {key!r} must be a list or array of strings, got {_describe(value)}")
     if items.ndim != 1:
         raise Occ3DFormatError(f"{where}: {key!r} has shape {items.shape}, expected (N,)")
+    if len(items) > MAX_BOXES:
+        raise Occ3DFormatError(
+            f"{where}: {key!r} has {len(items):,} entries, more than the {MAX_BOXES:,} boxes a frame may hold"
+        )
     allowed = (str, np.str_) + ((int, np.integer) if "i" in kinds else ())
     if len(items) and items.dtype.kind not in kinds:
-        bad = [x for x in items.tolist() if not isinstance(x, allowed) or isinstance(x, bool)]
+        # an integer token of thousands of digits cannot even be turned into a string
+        bad = [x for x in items.tolist() if not isinstance(x, allowed) or isinstance(x, bool) or _huge_int(x)]
         if bad:
-            raise Occ3DFormatError(
-                f"{where}: {key!r} must hold strings, got {type(bad[0]).__name__} {bad[0]!r}"
-            )
+            raise Occ3DFormatError(f"{where}: {key!r} must hold strings, got {_describe(bad[0])}")
     return items
 
 
@@ -312,6 +447,8 @@ def _check_annotations(frame: dict[str, Any], where: str) -> None:
     if boxes.ndim != 2 or boxes.shape[1] != 7:
         raise Occ3DFormatError(f"{where}: 'gt_boxes' has shape {boxes.shape}, expected (N, 7)")
     n = len(boxes)
+    if n > MAX_BOXES:
+        raise Occ3DFormatError(f"{where}: 'gt_boxes' has {n:,} boxes, more than the {MAX_BOXES:,} a frame may hold")
     names = _strings(frame.get("gt_names", []), "gt_names", where)
     if len(names) != n:
         raise Occ3DFormatError(
@@ -325,8 +462,9 @@ def _check_annotations(frame: dict[str, Any], where: str) -> None:
                 "(expected one token per box)"
             )
         seen = [str(t) for t in ids.tolist()]
-        if len(set(seen)) != len(seen):
-            twice = next(t for t in seen if seen.count(t) > 1)
+        counts = Counter(seen)
+        if len(counts) != len(seen):
+            twice = next(t for t in seen if counts[t] > 1)
             raise Occ3DFormatError(f"{where}: 'instance_tokens' has {twice!r} twice")
     steps = None
     if "gt_agent_fut_trajs" in frame:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import stat
+
+import pytest
 import torch
 
 import t3fast
@@ -60,3 +64,64 @@ def test_export_ships_model_options_checked(tmp_path, capsys):
     assert main(["export", str(SHIPPED_WM), str(tmp_path / "bad.pt"), "--model", "no_such_option=1"]) != 0
     assert "no_such_option" in capsys.readouterr().err
     assert not (tmp_path / "bad.pt").exists()
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    return err.strip()
+
+
+@pytest.mark.parametrize(("option", "problem"), [
+    ("planner=phi_act", "weight 'planner.future_queries' is missing"),
+    ("box_motion=false", "weight 'box_motion.view.0.weight' is not part of the model"),
+    ("route_modes=1", "weight 'planner.head.4.weight' has shape [39, 128] but the config 'task.model' builds [12, 128]"),
+    ("route_scene=true", "weight 'planner.scene.0.weight' is missing"),
+])
+def test_a_setting_the_weights_do_not_fit_keeps_the_shipped_file(tmp_path, capsys, option, problem):
+    """The exported file is loaded as users load it before it replaces the output: a setting
+    that changes which weights the model has is refused and the model shipped before stays."""
+    out = tmp_path / "wm.pt"
+    assert main(["export", str(SHIPPED_WM), str(out)]) == 0
+    shipped = out.read_bytes()
+    capsys.readouterr()
+    assert main(["export", str(SHIPPED_WM), str(out), "--model", option]) == 1
+    message = _one_line(capsys)
+    assert message.startswith(f"t3fast export: {out}: not written, the exported model would not load: {problem}")
+    assert out.read_bytes() == shipped and [p.name for p in tmp_path.iterdir()] == ["wm.pt"]
+    t3fast.load_world_model(out)
+
+
+def test_export_refuses_a_link_or_a_special_file_as_output(tmp_path, capsys):
+    """Renaming over a FIFO or a device replaces the node with a regular file; a link is refused
+    as ``forecast --out`` refuses one."""
+    target = tmp_path / "elsewhere.pt"
+    target.write_bytes(b"someone else's file")
+    link = tmp_path / "link.pt"
+    link.symlink_to(target)
+    assert main(["export", str(SHIPPED_WM), str(link)]) == 2
+    assert _one_line(capsys) == (f"t3fast export: {link} is a symbolic link: not writing through it "
+                                 "(remove it or choose another --out)")
+    assert link.is_symlink() and target.read_bytes() == b"someone else's file"
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    assert main(["export", str(SHIPPED_WM), str(fifo)]) == 2
+    assert _one_line(capsys) == f"t3fast export: {fifo} is a FIFO, not a regular file: not writing over it"
+    assert stat.S_ISFIFO(fifo.lstat().st_mode)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["elsewhere.pt", "fifo", "link.pt"]
+
+
+def test_float16_export_refuses_weights_beyond_its_range(tmp_path, capsys):
+    """70000 becomes inf in float16; the weight and its magnitude are named, float32 keeps it."""
+    state = load_checkpoint(SHIPPED_WM)
+    state["model"] = {k: v.float() for k, v in state["model"].items()}
+    state["model"]["planner.head.4.weight"][3, 7] = -70000.0
+    source = tmp_path / "large.pt"
+    torch.save(state, source)
+    out = tmp_path / "wm.pt"
+    assert main(["export", str(source), str(out)]) == 2
+    assert _one_line(capsys) == (f"t3fast export: {source}: weight 'planner.head.4.weight' reaches 70000 in "
+                                 "magnitude, beyond float16's 65504: export it as float32 (--dtype float32)")
+    assert not out.exists()
+    assert main(["export", str(source), str(out), "--dtype", "float32"]) == 0
+    assert t3fast.load_world_model(out).state_dict()["planner.head.4.weight"][3, 7] == -70000.0

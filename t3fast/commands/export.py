@@ -44,12 +44,26 @@ def model_options(options: list[str]) -> Callable[[dict[str, Any], str | None], 
     return edit
 
 
+def writable_file(path: Path) -> Path:
+    """``path`` as a file a command writes whole, checked before the work: not a symbolic link
+    (:func:`~t3fast.paths.output_path`: a link would send the write elsewhere) and, when
+    something is there, a regular file (:func:`~t3fast.io.checkpoint.check_replaceable`).
+    Raises :class:`~t3fast.errors.UsageError`."""
+    from t3fast.io.checkpoint import check_replaceable
+    from t3fast.paths import output_path
+
+    output_path(path.parent, path.name)
+    check_replaceable(path)
+    return path
+
+
 def _export(args: argparse.Namespace) -> int:
     from t3fast.errors import UsageError
     from t3fast.io.checkpoint import export_weights
 
     if args.out.is_dir():
         raise UsageError(f"{args.out} is a folder; it names the file to write")
+    writable_file(args.out)
     if args.out.resolve() == args.ckpt.resolve():
         raise UsageError(f"{args.out}: writing over the checkpoint being exported would lose its training state")
     size = export_weights(args.ckpt, args.out, DTYPES[args.dtype], model_options(args.model) if args.model else None)

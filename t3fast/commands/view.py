@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from t3fast.commands.args import non_negative_int
+from t3fast.commands.export import writable_file
 from t3fast.data.sample import WINDOW
 from t3fast.errors import UsageError
 from t3fast.paths import output_file
@@ -55,7 +56,7 @@ def _window(args: argparse.Namespace):
 def _view(args: argparse.Namespace) -> int:
     from t3fast.viz.viewer import write_window_viewer
 
-    output_file(args.out, "HTML file")
+    writable_file(output_file(args.out, "HTML file"))
     sample, title = _window(args)
     title = f"{title}, frames {sample.start}-{sample.start + WINDOW - 1}"
     predicted = plan = None

@@ -1,32 +1,39 @@
-"""Atomic checkpoint files: a crash or Ctrl-C mid-write never leaves a truncated checkpoint."""
+"""Checkpoint files: written atomically (a crash or Ctrl-C mid-write never leaves a truncated
+checkpoint) and read only once their archive is known not to inflate beyond the file."""
 
 from __future__ import annotations
 
 import os
 import stat
 import tempfile
-from collections.abc import Callable
+import zipfile
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import torch
 
-from t3fast.errors import CheckpointError
+from t3fast.errors import CheckpointError, UsageError
 
 #: checkpoint kinds, named after the command that writes them
 AUTOENCODER = "stage-1 autoencoder checkpoint (from `t3fast train-ae`)"
 WORLD_MODEL = "stage-2 world model checkpoint (from `t3fast train-wm`)"
 
 
-def save_checkpoint(state: dict[str, Any], path: str | Path) -> None:
+def save_checkpoint(state: dict[str, Any], path: str | Path,
+                    check: Callable[[Path], None] | None = None) -> None:
     """Write ``state`` with ``torch.save`` so that ``path`` holds either the old or the new file.
 
     The data goes to a temporary file in the same directory (``os.replace`` is atomic only
     within one file system), is flushed and fsynced, then renamed over ``path``. The file gets
     the permissions ``torch.save`` would give it: those of the file it replaces, else
     ``0o666`` less the umask (``mkstemp`` alone would make it private to its owner).
+    ``check(written)``, if given, runs on the complete temporary file before the rename; what
+    it raises leaves ``path`` as it was. Something at ``path`` that is not a regular file (a
+    FIFO, a device) is refused (:func:`check_replaceable`).
     """
     path = Path(path)
+    check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     mode = file_mode(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -35,12 +42,33 @@ def save_checkpoint(state: dict[str, Any], path: str | Path) -> None:
             torch.save(state, f)
             f.flush()
             os.fsync(f.fileno())
+        if check is not None:
+            check(Path(tmp))
         os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:  # also KeyboardInterrupt: never leave the temporary file behind
         Path(tmp).unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Raises :class:`~t3fast.errors.UsageError` when ``path`` exists and is neither a regular
+    file nor a symbolic link: renaming over a FIFO or a device (``/dev/null`` as root) would
+    replace the node itself, and writing into one would block or reach the device."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+        raise UsageError(f"{path} is a {_file_type(mode)}, not a regular file: not writing over it")
+
+
+def _file_type(mode: int) -> str:
+    """What ``mode`` (``st_mode``) says a file is, in words."""
+    types = ((stat.S_ISDIR, "folder"), (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
+             (stat.S_ISFIFO, "FIFO"), (stat.S_ISSOCK, "socket"))
+    return next((name for test, name in types if test(mode)), "special file")
 
 
 def file_mode(path: str | Path) -> int:
@@ -74,9 +102,39 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device | None = 
     """Read a checkpoint written by :func:`save_checkpoint`.
 
     Loads with ``weights_only=True`` (no arbitrary code from the file): checkpoints hold only
-    tensors, numbers, strings and containers of them.
+    tensors, numbers, strings and containers of them. The archive is checked first
+    (:func:`check_archive`), from the same open file that ``torch.load`` then reads.
     """
-    return torch.load(path, map_location=map_location, weights_only=True)
+    with open(path, "rb") as f:
+        check_archive(f, path)
+        f.seek(0)
+        return torch.load(f, map_location=map_location, weights_only=True)
+
+
+def check_archive(f: IO[bytes], path: str | Path) -> None:
+    """Raises :class:`~t3fast.errors.CheckpointError` unless ``f`` is a zip archive whose records
+    are all stored uncompressed and together no larger than the file, as ``torch.save`` writes
+    them. Only the archive's central directory is read: ``torch.load`` allocates each record at
+    its declared size, so a deflated record or a false size would take memory out of all
+    proportion to the file (a 2.5 MB file of deflated zeros made 1 GB) before any check of
+    the contents could refuse it. The legacy, non-zip format is refused too: it sizes its
+    storages from the pickle alone."""
+    try:
+        with zipfile.ZipFile(f) as archive:
+            records = archive.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, EOFError) as exc:
+        reason = (str(exc).strip().splitlines() or [""])[0]
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
+    for record in records:
+        if record.compress_type != zipfile.ZIP_STORED:
+            method = "deflated" if record.compress_type == zipfile.ZIP_DEFLATED else "compressed"
+            raise CheckpointError(f"{path}: not a readable checkpoint (record {record.filename!r} is {method}; "
+                                  "torch.save stores its records uncompressed)")
+    declared = sum(record.file_size for record in records)
+    size = os.fstat(f.fileno()).st_size
+    if declared > size:
+        raise CheckpointError(f"{path}: not a readable checkpoint (its records declare {declared:,} bytes, more "
+                              f"than the file's {size:,})")
 
 
 def checkpoint_kind(state: Any) -> str | None:
@@ -99,14 +157,16 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
 
     Raises :class:`~t3fast.errors.CheckpointError` saying what the file is when it is missing,
     unreadable, not a t3fast checkpoint, a checkpoint of the other stage, or holds a weight that
-    is not a tensor (whether the weights fit the config is checked where a model is built,
-    :mod:`t3fast.pretrained`).
+    is not a tensor or not finite (whether the weights fit the config is checked where a model
+    is built, :mod:`t3fast.pretrained`).
     """
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
         state = load_checkpoint(path)
+    except CheckpointError:
+        raise
     except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
         reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
@@ -125,7 +185,18 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
             raise CheckpointError(f"{path}: weights are named by strings, not by {type(key).__name__} {key!r}")
         if not isinstance(value, torch.Tensor):
             raise CheckpointError(f"{path}: weight {key!r} is a {type(value).__name__}, not a tensor")
+    check_finite(state["model"], path)
     return state
+
+
+def check_finite(weights: Mapping[str, torch.Tensor], path: str | Path) -> None:
+    """Raises :class:`~t3fast.errors.CheckpointError` naming the first floating-point weight
+    that holds a NaN or an infinity: a model loaded with it would forecast wrong without a word."""
+    for key, value in weights.items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise CheckpointError(f"{path}: weight {key!r} is not finite ({bad} of its {value.numel()} values are "
+                                  "NaN or infinite)")
 
 
 def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16,
@@ -134,14 +205,52 @@ def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.
     config, step), e.g. to ship it; returns the file size in bytes. Loading casts back to the
     model's dtype. ``src`` must be a stage-1 or stage-2 checkpoint (:func:`read_checkpoint`
     says what it is otherwise), read once. ``edit_config(config, kind)``: the config to store
-    instead of the run's (``kind``: :func:`checkpoint_kind`), e.g. an inference setting."""
+    instead of the run's (``kind``: :func:`checkpoint_kind`), e.g. an inference setting.
+
+    ``dst`` is replaced only by a file that loads: the written file is loaded as
+    :func:`t3fast.load_world_model` (or :func:`t3fast.load_autoencoder`) loads it before it is
+    renamed over ``dst``; a weight beyond the range of ``dtype`` is refused
+    (:class:`~t3fast.errors.UsageError`) rather than stored as an infinity.
+    """
     state = read_checkpoint(src, (AUTOENCODER, WORLD_MODEL))
-    weights = {k: v.to(dtype) if v.is_floating_point() else v for k, v in state["model"].items()}
+    kind = checkpoint_kind(state)
+    weights = {key: cast_weight(value, dtype, key, src) for key, value in state["model"].items()}
     config = state.get("config", {})
     if edit_config is not None:
-        config = edit_config(config, checkpoint_kind(state))
-    save_checkpoint({"model": weights, "config": config, "step": state.get("step")}, dst)
+        config = edit_config(config, kind)
+    exported = {"model": weights, "config": config, "step": state.get("step")}
+    save_checkpoint(exported, dst, check=lambda written: _check_loads(written, dst, kind))
     return Path(dst).stat().st_size
+
+
+def cast_weight(value: torch.Tensor, dtype: torch.dtype, key: str, path: str | Path) -> torch.Tensor:
+    """A floating-point ``value`` (finite, :func:`read_checkpoint`) in ``dtype``; one with values
+    beyond the range of ``dtype`` (which the cast would make infinite) is refused with
+    :class:`~t3fast.errors.UsageError` naming the weight and its largest magnitude."""
+    if not value.is_floating_point():
+        return value
+    cast = value.to(dtype)
+    if not bool(torch.isfinite(cast).all()):
+        peak = float(value.abs().max())
+        largest = torch.finfo(dtype).max
+        wider = ": export it as float32 (--dtype float32)" if largest < torch.finfo(torch.float32).max else ""
+        name = str(dtype).removeprefix("torch.")
+        raise UsageError(f"{path}: weight {key!r} reaches {peak:g} in magnitude, beyond {name}'s {largest:g}{wider}")
+    return cast
+
+
+def _check_loads(written: Path, dst: str | Path, kind: str | None) -> None:
+    """Load ``written`` (the export on its way to ``dst``) as users load it; a
+    :class:`~t3fast.errors.T3fastError` it raises is raised again naming ``dst``."""
+    from t3fast.errors import T3fastError
+    from t3fast.pretrained import load_autoencoder, load_world_model
+
+    load = load_world_model if kind == WORLD_MODEL else load_autoencoder
+    try:
+        load(written)
+    except T3fastError as exc:
+        reason = str(exc).removeprefix(f"{written}: ")
+        raise type(exc)(f"{dst}: not written, the exported model would not load: {reason}") from None
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -177,3 +177,40 @@ def test_config_values_are_checked_where_configs_are_made():
         AutoencoderConfig(full_res_channels=12)
     with pytest.raises(ConfigError, match=r"'forecaster_layers' must be an integer in \[1, 32\], got 1000"):
         WorldModelConfig(forecaster_layers=1000)
+
+
+# ---------------------------------------------------------------- weights that are not finite
+def _poisoned(tmp_path, key):
+    """wm-small with one NaN in weight ``key``."""
+    from t3fast.io.checkpoint import save_checkpoint
+
+    state = load_checkpoint(SHIPPED_DIR / "wm-small.pt")
+    state["model"][key].view(-1)[3] = float("nan")
+    save_checkpoint(state, tmp_path / "wm.pt")
+    return tmp_path / "wm.pt"
+
+
+@pytest.mark.parametrize("key", ["planner.head.0.weight", "box_motion.view.0.weight", "decoder.mlp.0.weight"])
+def test_a_weight_that_is_not_finite_is_refused_on_loading(tmp_path, key):
+    """A NaN planner or box motion weight said 'cannot convert float NaN to integer' mid-forecast;
+    a NaN decoder weight forecast silently wrong."""
+    path = _poisoned(tmp_path, key)
+    message = f"{path}: weight '{key}' is not finite (1 of its {load_checkpoint(path)['model'][key].numel()} values "
+    for load in (t3fast.load_world_model, t3fast.load_autoencoder):
+        if load is t3fast.load_autoencoder and not key.startswith("decoder."):
+            continue
+        with pytest.raises(CheckpointError) as info:
+            load(path)
+        assert str(info.value) == message + "are NaN or infinite)"
+
+
+def test_forecast_refuses_a_weight_that_is_not_finite_before_running(tmp_path, capsys):
+    from t3fast.commands.main import main
+    from t3fast.data.export import export_synthetic
+
+    path = _poisoned(tmp_path, "box_motion.view.0.weight")
+    export_synthetic(tmp_path / "occ", "val", 1, 11, progress=False)
+    assert main(["forecast", "--data", str(tmp_path / "occ"), "--ckpt", str(path), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == (f"t3fast forecast: {path}: weight 'box_motion.view.0.weight' is not finite "
+                                    "(1 of its 1008 values are NaN or infinite)")

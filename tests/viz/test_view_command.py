@@ -3,6 +3,8 @@ pages whose embedded labels are exactly the window's; bad arguments name the pro
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from t3fast.commands.main import main
@@ -49,3 +51,18 @@ def test_bad_arguments_name_the_problem(tmp_path, capsys):
     assert "is not a folder" in capsys.readouterr().err
     assert main(["view", "--synthetic", "test:0", "--ckpt", "wm-huge", "--out", str(tmp_path / "a.html")]) == 1
     assert "neither a checkpoint file nor a shipped model" in capsys.readouterr().err
+
+
+def test_view_does_not_write_through_a_link_or_into_a_special_file(tmp_path, capsys):
+    target = tmp_path / "elsewhere.html"
+    target.write_text("someone else's page")
+    link = tmp_path / "view.html"
+    link.symlink_to(target)
+    assert main(["view", "--synthetic", "test:0", "--out", str(link)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"t3fast view: {link} is a symbolic link: not writing through it (remove it or choose another --out)\n"
+    assert target.read_text() == "someone else's page"
+    fifo = tmp_path / "fifo.html"
+    os.mkfifo(fifo)  # writing would block until something reads it
+    assert main(["view", "--synthetic", "test:0", "--out", str(fifo)]) == 2
+    assert capsys.readouterr().err == f"t3fast view: {fifo} is a FIFO, not a regular file: not writing over it\n"

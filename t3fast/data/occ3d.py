@@ -282,6 +282,8 @@ def _huge_int(value: Any) -> bool:
 
 #: what a numeric field may hold besides lists, tuples and arrays (bool is an int)
 _NUMBER_TYPES = (int, float, np.integer, np.floating, np.bool_)
+#: the number types info files hold, known without an ``isinstance`` per entry
+_PLAIN_NUMBER_TYPES = {int, float, bool, np.float64, np.float32, np.int64, np.int32, np.bool_}
 
 
 def _check_bounded_numbers(value: Any, key: str, where: str) -> None:
@@ -309,24 +311,26 @@ class _EntryCounter:
 
     def count(self, item: Any, depth: int) -> int:
         """Entries in ``item`` (0 for a number), refusing what is not a number or too large."""
-        if isinstance(item, _NUMBER_TYPES):
-            return 0
-        if id(item) in self.known:
-            return self.known[id(item)]
-        if isinstance(item, np.ndarray) and item.dtype.kind in "biuf":
-            return self._within_limit(item.size)
-        if isinstance(item, np.ndarray) and item.dtype.kind == "O":
-            children = item.ravel()
-        elif isinstance(item, (list, tuple)):
+        if isinstance(item, (list, tuple)):
             children = item
+        elif isinstance(item, _NUMBER_TYPES):
+            return 0
+        elif isinstance(item, np.ndarray) and item.dtype.kind in "biuf":
+            return self._within_limit(item.size)
+        elif isinstance(item, np.ndarray) and item.dtype.kind == "O":
+            children = item.ravel()
         else:
             raise Occ3DFormatError(f"{self.where}: {self.key!r} must hold numbers, got {_describe(item)}")
+        known = self.known.get(id(item))
+        if known is not None:
+            return known
         if depth == MAX_NESTING:
             raise Occ3DFormatError(f"{self.where}: {self.key!r} has lists nested more than {MAX_NESTING} deep")
         total = self._within_limit(len(children))
-        for child in children:
-            if not isinstance(child, _NUMBER_TYPES):  # numbers add nothing: skip the call
-                total = self._within_limit(total + self.count(child, depth + 1))
+        if not set(map(type, children)) <= _PLAIN_NUMBER_TYPES:  # a row of plain numbers needs no walk
+            for child in children:
+                if not isinstance(child, _NUMBER_TYPES):
+                    total = self._within_limit(total + self.count(child, depth + 1))
         self.known[id(item)] = total
         return total
 

@@ -1,8 +1,9 @@
 """The ``t3fast`` command line: one sub-command per job.
 
 Errors the user can fix (:data:`t3fast.errors.EXPECTED_ERRORS`) print one line,
-``t3fast <command>: <message>``, and exit 1 (2 for bad arguments); ``--debug`` shows the
-traceback instead.
+``t3fast <command>: <message>``, and exit 1 (2 for bad arguments); Ctrl-C prints
+``t3fast <command>: interrupted`` and exits 130 (as a shell reports SIGINT); ``--debug`` shows
+the traceback too.
 """
 
 from __future__ import annotations
@@ -69,6 +70,11 @@ def main(argv: list[str] | None = None) -> int:
         message = str(exc) or type(exc).__name__
         print(f"{args.command_name}: {message}", file=sys.stderr)
         return 2 if isinstance(exc, UsageError) else 1
+    except KeyboardInterrupt:  # outside the training loop, which stops cleanly on its own
+        if args.debug:
+            traceback.print_exc()
+        print(f"{args.command_name}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

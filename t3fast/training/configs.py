@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from t3fast.data.sample import NUM_FUTURE
+from t3fast.device import check_device_name
 from t3fast.errors import ConfigError
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 
@@ -55,7 +56,7 @@ class TrainConfig:
     weight_decay: float = 0.01  # AdamW; not applied to biases, norm weights, embeddings
     grad_clip: float | None = 1.0  # max gradient norm; None disables clipping
     amp: bool = True  # CUDA only: bf16 autocast when supported, else fp16 with a GradScaler
-    seed: int = 0
+    seed: int = 0  # in [0, 2**63)
     log_every: int = 50  # steps between train log events
     eval_every: int = 1000  # steps between evaluations (also at the end); 0 never evaluates
     eval_at_start: bool = False  # also score the untrained model (step 0): the run's own baseline
@@ -80,6 +81,9 @@ class TrainConfig:
         _weights("train.", self, ("weight_decay",), "0 turns it off")
         if self.grad_clip is not None and not self.grad_clip >= 0:  # also NaN
             raise ConfigError(f"train.grad_clip must be >= 0 (0 disables clipping), got {self.grad_clip}")
+        if not 0 <= self.seed < 2**63:  # what every generator seeded from it takes
+            raise ConfigError(f"train.seed must be an integer in [0, 2**63), got {self.seed}")
+        check_device_name(self.device, "train.device")
 
 
 @dataclass

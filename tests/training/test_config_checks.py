@@ -89,3 +89,42 @@ def test_cli_prints_the_key_in_one_line(tmp_path, capsys):
         "t3fast train-ae: train.grad_clip must be >= 0 (0 disables clipping), got -1.0\n"
     )
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("train.seed=1e30", "train.seed must be an integer in [0, 2**63), got 1000000000000000019884624838656"),
+        ("train.seed=-1", "train.seed must be an integer in [0, 2**63), got -1"),
+        ("train.device=tpu", "train.device must be 'auto', 'cuda' or 'cpu', got 'tpu'"),
+        ("train.device=cuda:7", "train.device must be 'auto', 'cuda' or 'cpu', got 'cuda:7' (each process "
+                                "trains on one GPU: choose it with CUDA_VISIBLE_DEVICES=7)"),
+    ],
+)
+def test_seed_and_device_are_checked(override, message):
+    with pytest.raises(ConfigError) as info:
+        load_config(Stage1Config, None, [override])
+    assert str(info.value) == message
+
+
+def test_largest_seed_is_accepted(tmp_path):
+    cfg = load_config(Stage1Config, None, [f"train.seed={2**63 - 1}"])
+    assert Trainer(ToyTask(), toy_config(tmp_path, seed=cfg.train.seed)).fit()["step"] == 8
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_without_cuda_names_the_key(tmp_path):
+    with pytest.raises(ConfigError) as info:
+        Trainer(ToyTask(), toy_config(tmp_path / "run", device="cuda"))
+    assert str(info.value) == "train.device is 'cuda' but CUDA is not available here: use train.device=cpu (or auto)"
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_process_without_its_gpu_names_the_key(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    monkeypatch.setenv("LOCAL_RANK", "3")
+    with pytest.raises(ConfigError) as info:
+        Trainer(ToyTask(), toy_config(tmp_path / "run", device="cuda"))
+    assert str(info.value) == ("train.device is 'cuda' but this process (LOCAL_RANK=3) needs GPU 3 and 2 are "
+                               "visible: start at most 2 processes per machine")

@@ -214,3 +214,57 @@ def test_a_checkpoint_that_does_not_fit_its_config_is_one_line_in_forecast(tmp_p
     assert main(["forecast", "--data", str(root), "--info", str(info), "--ckpt", str(path), "--out", str(out)]) == 1
     assert one_line(capsys) == f"t3fast forecast: {path}: {message}"
     assert not list(out.rglob("*.npz"))
+
+
+def test_ctrl_c_before_training_is_one_line(tmp_path, capsys, monkeypatch):
+    from t3fast.training.planner.plan_cache import PlanCache
+
+    def interrupted(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(PlanCache, "build", interrupted)
+    argv = ["train-planner", "--config", "plan-small", "train.steps=1", "data.train_scenes=1", "data.val_scenes=1",
+            f"data.cache_dir={tmp_path / 'cache'}", f"train.out_dir={tmp_path / 'run'}"]
+    assert main(argv) == 130
+    assert one_line(capsys) == "t3fast train-planner: interrupted"
+    assert main([*argv, "--debug"]) == 130
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "KeyboardInterrupt" in err and err.endswith("t3fast train-planner: interrupted\n")
+
+
+PLANNER_RUN = ["train-planner", "--config", "plan-small", "train.steps=2", "data.train_scenes=1", "data.val_scenes=1",
+               "train.batch_size=4"]
+
+
+def last_line(capsys) -> str:
+    """The error line after a training command's progress bars."""
+    err = capsys.readouterr().err
+    assert err.endswith("\n") and "Traceback" not in err, err
+    return err.splitlines()[-1]
+
+
+def test_training_that_diverges_is_one_line(tmp_path, capsys):
+    run = [*PLANNER_RUN, f"data.cache_dir={tmp_path / 'cache'}", f"train.out_dir={tmp_path / 'run'}"]
+    assert main([*run, "train.lr=1e30", "train.min_lr=0"]) == 1
+    message = last_line(capsys)
+    assert message.startswith("t3fast train-planner: train step ") and "is not finite" in message
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_resuming_a_run_of_another_size_is_one_line(tmp_path, capsys):
+    run = [*PLANNER_RUN, f"data.cache_dir={tmp_path / 'cache'}", f"train.out_dir={tmp_path / 'run'}"]
+    assert main(run) == 0
+    capsys.readouterr()
+    assert main([*run, "modes=1", "--resume"]) == 1
+    message = last_line(capsys)
+    assert message.startswith(f"t3fast train-planner: {tmp_path / 'run' / 'last.pt'}: weight ")
+    assert message.endswith("it was written by a run with other model settings")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_on_a_machine_without_it_is_one_line(tmp_path, capsys):
+    argv = [*PLANNER_RUN, "train.device=cuda", f"data.cache_dir={tmp_path / 'cache'}",
+            f"train.out_dir={tmp_path / 'run'}"]
+    assert main(argv) == 1
+    assert one_line(capsys) == ("t3fast train-planner: train.device is 'cuda' but CUDA is not available here: "
+                                "use train.device=cpu (or auto)")

@@ -14,8 +14,13 @@ Files in ``out_dir`` (written by rank 0): ``last.pt`` (every ``ckpt_every`` step
 and on Ctrl-C), ``best.pt`` (whenever the evaluation score improves), ``metrics.jsonl`` (one
 ``{"event", "step", "time", "values"}`` object per log or evaluation), ``tb/`` (TensorBoard,
 when installed). A new run needs an empty ``out_dir``; ``resume`` continues the run there and
-``overwrite`` replaces it, keeping the old files until the new run has set up and written its
-first checkpoint, and putting them back if it fails before (:mod:`t3fast.training.run_dir`).
+``overwrite`` replaces it, keeping the old files until the new run has set up, trained a step
+and written a checkpoint, and putting them back if it fails before (:mod:`t3fast.training.run_dir`).
+
+Finite numbers only: a step whose loss is not finite, or after which a weight is not, stops the
+run with a :class:`~t3fast.errors.DivergenceError` naming the step and the loss term or weight,
+before anything of that step is saved; no checkpoint is ever written with non-finite weights,
+and none is resumed from (:mod:`t3fast.training.checkpoint_checks`).
 
 Exact resume: a run resumed from ``last.pt`` takes the same steps as an uninterrupted one:
 same weights, optimiser and scheduler state, batches and random streams. Randomness inside
@@ -38,9 +43,12 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.device import require_device
+from t3fast.errors import CheckpointError, DivergenceError
+from t3fast.io.checkpoint import save_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.training.batch_sampler import ResumableBatchSampler
+from t3fast.training.checkpoint_checks import first_nonfinite, load_weights, read_training_checkpoint
 from t3fast.training.configs import TrainConfig
 from t3fast.training.distributed import (
     all_gather_object,
@@ -74,7 +82,7 @@ class Trainer:
 
     def __init__(self, task: Task, cfg: TrainConfig) -> None:
         self.task, self.cfg = task, cfg
-        self.device = init_distributed(cfg.device)
+        self.device = init_distributed(require_device(cfg.device, "train.device"))
         self.rank, self.world = rank(), world_size()
         self.out_dir = Path(cfg.out_dir)
         check_out_dir(self.out_dir, cfg.resume, cfg.resume_from, cfg.overwrite)
@@ -85,6 +93,8 @@ class Trainer:
         seed_everything(cfg.seed)  # the same initial weights on every rank
         self.module = task.build_model().to(self.device)
         self.model: nn.Module = self.module
+        # what the optimiser can change, checked for non-finite values after every step
+        self._trainable = {name: p for name, p in self.module.named_parameters() if p.requires_grad}
         if self.world > 1:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.model = DistributedDataParallel(self.module, device_ids=ids)
@@ -130,16 +140,17 @@ class Trainer:
         The result holds ``step``, ``best_score``, the last train log as ``train/<name>`` and
         the last evaluation as ``eval/<name>``. Ctrl-C stops after the current step, writes
         ``last.pt`` and returns (``self.interrupted`` is then True); a second Ctrl-C aborts.
-        With ``overwrite``, an error before the first checkpoint puts the replaced run back.
+        With ``overwrite``, an error before the first checkpoint after a training step puts the
+        replaced run back. A loss or weight that is not finite raises :class:`DivergenceError`.
         """
         try:
             self._fit()
         except BaseException:
-            if self._replacing:  # failed before its first checkpoint: the replaced run comes back
+            if self._replacing:  # failed before it trained and saved: the replaced run comes back
                 restore(self.out_dir)
                 self._replacing = False
-                log.warning("the run failed before its first checkpoint; restored the run it replaced in %s",
-                            self.out_dir)
+                log.warning("the run failed before its first checkpoint after a training step; restored the run "
+                            "it replaced in %s", self.out_dir)
             raise
         return self._result()
 
@@ -172,6 +183,7 @@ class Trainer:
             loss, values = self.task.training_step(self.model, batch)
         self.scaler.scale(loss).backward()
         logs = {"loss": float(loss.detach()), **{k: float(v) for k, v in values.items()}}
+        self._check_loss(logs)  # before the optimiser step: the weights stay those of the last good step
         logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
         if self.cfg.grad_clip:  # None or 0: no clipping
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
@@ -180,12 +192,32 @@ class Trainer:
         self.scaler.update()
         self.scheduler.step()
         self.step += 1
+        self._check_weights(logs["loss"])
 
         for k, v in logs.items():
             self._sums[k] += v
         self._count += 1
         self._samples += self.task.samples_in(batch)
         self._log.advance()
+
+    def _check_loss(self, logs: dict[str, float]) -> None:
+        """Stop, on every rank at once, at the first step whose loss is not finite, naming the terms."""
+        if not any_rank(not math.isfinite(logs["loss"])):
+            return
+        terms = ", ".join(f"{k}={v}" for k, v in logs.items() if not math.isfinite(v)) or "on another rank"
+        raise DivergenceError(f"train step {self.step + 1}: the loss is not finite ({terms}); look for NaN or "
+                              f"infinite values in the data, or lower train.lr ({self.cfg.lr:g}) or "
+                              f"train.weight_decay ({self.cfg.weight_decay:g})")
+
+    def _check_weights(self, loss: float) -> None:
+        """Stop at the first step after which a weight is not finite (a finite loss can get there:
+        a learning rate or weight decay far too large). The ranks hold the same weights."""
+        name = first_nonfinite(self._trainable)
+        if name is not None:
+            raise DivergenceError(
+                f"train step {self.step}: weight {name!r} is not finite after the optimiser step (the loss, "
+                f"{loss:.4g}, was): lower train.lr ({self.cfg.lr:g}) or train.weight_decay ({self.cfg.weight_decay:g})"
+            )
 
     def _periodic(self) -> None:
         cfg, step = self.cfg, self.step
@@ -255,10 +287,14 @@ class Trainer:
 
     def _save(self, name: str) -> None:
         """Write ``out_dir/name``; collective (every rank contributes its random state)."""
+        bad = first_nonfinite(self.module.state_dict())  # also buffers, and the weights a task built
+        if bad is not None:
+            raise DivergenceError(f"weight {bad!r} is not finite at step {self.step}: {name} not written")
         rng = all_gather_object(rng_state(self.device))
         if is_main():
             save_checkpoint(self._state(rng), self.out_dir / name)
-            if self._replacing:  # the new run has started: the run it replaces goes
+            # the run it replaces goes once the new one has trained (eval_at_start saves at step 0)
+            if self._replacing and self.step > 0:
                 drop_replaced(self.out_dir)
                 self._replacing = False
         if name == "last.pt":
@@ -284,9 +320,13 @@ class Trainer:
         path = self._resume_path()
         if path is None:
             return
-        state = load_checkpoint(path, map_location="cpu")
-        self.module.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])  # before the scheduler: it holds the current lr
+        state = read_training_checkpoint(path)
+        load_weights(self.module, state["model"], path)
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])  # before the scheduler: it holds the current lr
+        except (ValueError, KeyError, TypeError) as exc:  # e.g. other parameter groups (lr_scales, frozen parts)
+            raise CheckpointError(f"{path}: its optimizer state does not fit this run's ({exc}): it was written "
+                                  "by a run with other training settings") from exc
         self.scheduler.load_state_dict(state["scheduler"])
         if self.scaler.is_enabled() and state["scaler"]:
             self.scaler.load_state_dict(state["scaler"])
@@ -310,7 +350,6 @@ class Trainer:
             return path
         # check_out_dir has made sure out_dir/last.pt exists when resuming
         return self.out_dir / "last.pt" if self.cfg.resume else None
-
 
 
 def _amp_dtype(enabled: bool, device: torch.device) -> torch.dtype | None:

@@ -173,7 +173,8 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
     numpy arrays only, no code). Scene names and tokens must be plain folder names, every
     frame's poses finite with unit quaternions, and its trajectories, boxes, names, instance
     tokens and agent trajectories of the documented shapes, with one row per box and values
-    finite in float32.
+    finite in float32. Each field's size is checked against :data:`FIELD_LIMITS` (at most
+    :data:`MAX_BOXES` boxes a frame) before it becomes an array.
     """
     path = Path(path)
     if not path.is_file():

@@ -75,7 +75,8 @@ def _one_line(capsys) -> str:
 @pytest.mark.parametrize(("option", "problem"), [
     ("planner=phi_act", "weight 'planner.future_queries' is missing"),
     ("box_motion=false", "weight 'box_motion.view.0.weight' is not part of the model"),
-    ("route_modes=1", "weight 'planner.head.4.weight' has shape [39, 128] but the config 'task.model' builds [12, 128]"),
+    ("route_modes=1",
+     "weight 'planner.head.4.weight' has shape [39, 128] but the config 'task.model' builds [12, 128]"),
     ("route_scene=true", "weight 'planner.scene.0.weight' is missing"),
 ])
 def test_a_setting_the_weights_do_not_fit_keeps_the_shipped_file(tmp_path, capsys, option, problem):

@@ -60,7 +60,8 @@ def test_view_does_not_write_through_a_link_or_into_a_special_file(tmp_path, cap
     link.symlink_to(target)
     assert main(["view", "--synthetic", "test:0", "--out", str(link)]) == 2
     err = capsys.readouterr().err
-    assert err == f"t3fast view: {link} is a symbolic link: not writing through it (remove it or choose another --out)\n"
+    assert err == (f"t3fast view: {link} is a symbolic link: not writing through it "
+                   "(remove it or choose another --out)\n")
     assert target.read_text() == "someone else's page"
     fifo = tmp_path / "fifo.html"
     os.mkfifo(fifo)  # writing would block until something reads it

@@ -20,7 +20,6 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, VOXEL_SIZE
-from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
 from t3fast.models.agent_boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
 from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
@@ -38,6 +37,18 @@ from t3fast.models.ego_motion import (
 )
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
+from t3fast.models.forecast_inputs import (
+    check_command,
+    check_finite,
+    check_future_actions,
+    check_horizon,
+    check_past_motion,
+    check_past_occupancy,
+    check_planner_dtype,
+    check_steps,
+    steps_into,
+    supported_steps,
+)
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner, constant_turn_rate
 from t3fast.models.route_planner import RoutePlanner
@@ -141,48 +152,6 @@ def split_past_motion(motion: Tensor) -> tuple[Tensor, Tensor]:
     heading = torch.atan2(motion[..., 1], motion[..., 0])
     heading = torch.cat([heading[:, :1], heading], dim=1) - heading[:, -1:]  # the present heads along +x
     return torch.cat([xy, heading.unsqueeze(-1)], dim=-1), motion
-
-
-def check_finite(name: str, values: Tensor) -> None:
-    """Raises :class:`UsageError` naming ``name`` and the index of its first NaN or infinity (a
-    non-finite pose or displacement would make the whole forecast NaN). Skipped inside
-    ``torch.compile`` graphs and CUDA graph capture, where reading a value back from the device
-    would break the graph: eager calls check."""
-    if not values.is_floating_point() or torch.compiler.is_compiling():
-        return
-    if values.is_cuda and torch.cuda.is_current_stream_capturing():
-        return
-    bad = ~torch.isfinite(values)
-    if bool(bad.any()):
-        index = tuple(bad.nonzero()[0].tolist())
-        raise UsageError(f"{name} must be finite, but {name}[{', '.join(map(str, index))}] is "
-                         f"{values[index].item()} ({int(bad.sum())} non-finite values)")
-
-
-def check_future_actions(future_actions: Tensor, batch: int) -> None:
-    """``future_actions`` must be finite displacements ``[B, S, 2]`` or poses ``[B, S, 3]``, S >= 1."""
-    shape = list(future_actions.shape)
-    if future_actions.dim() != 3 or shape[-1] not in (2, 3) or shape[1] < 1 or shape[0] != batch:
-        raise UsageError(f"future_actions must be displacements [B, S, 2] or poses [B, S, 3] with B = {batch} "
-                         f"and S >= 1, got shape {shape}")
-    check_finite("future_actions", future_actions)
-
-
-def check_command(command: Tensor | None, batch: int, reads_command: bool) -> None:
-    """``command`` must be None or route commands int64 ``[B]`` in ``0..2``
-    (:mod:`t3fast.data.route`), given to a model whose planner reads them."""
-    if command is None:
-        return
-    if not reads_command:
-        raise UsageError("this model's planner does not read a route command (world_config.planner = 'phi_act'); "
-                         "pass command=None")
-    if not isinstance(command, Tensor) or command.dtype not in (torch.int64, torch.int32) or list(
-            command.shape) != [batch]:
-        got = f"{command.dtype} {list(command.shape)}" if isinstance(command, Tensor) else type(command).__name__
-        raise UsageError(f"command must be route commands int64 [B] with B = {batch}, got {got}")
-    if command.numel() and not bool(((command >= 0) & (command < len(COMMANDS))).all()):
-        bad = command[(command < 0) | (command >= len(COMMANDS))][0]
-        raise UsageError(f"command values must be in 0..{len(COMMANDS) - 1} ({', '.join(COMMANDS)}), got {int(bad)}")
 
 
 class T3Former(nn.Module):
@@ -474,25 +443,42 @@ class T3Former(nn.Module):
                 :mod:`t3fast.data.route`) for a planner that reads them (``planner="route"``);
                 None plans without one. Unused when ``future_actions`` are given.
 
-        Raises :class:`~t3fast.errors.UsageError` (a ``ValueError``) for a number of past
-        frames other than the model's ``history``, motion that does not fit the frames, and
-        NaN or infinite poses, displacements or ``future_actions`` (naming the first index).
+        Raises :class:`~t3fast.errors.UsageError` (a ``ValueError``), before any frame is
+        encoded, for: arguments that are not tensors of the documented shapes, an empty batch, a
+        number of past frames other than the model's ``history``, NaN or infinite poses,
+        displacements or ``future_actions`` (naming the first index), poses that are not rigid
+        motions, motion beyond what a vehicle does (a step over 100 m between frames, a pose
+        over 1e7 m from the world origin: :mod:`~t3fast.models.forecast_inputs`), integer
+        motion (to plan with the autoregressive planner: motion of another dtype than its
+        weights), and more future steps than the model forecasts (naming its maximum).
         """
-        if past_occupancy.dim() != 5:
-            raise UsageError(f"past_occupancy must be labels [B, T, X, Y, Z], got shape {list(past_occupancy.shape)}")
+        check_past_occupancy(past_occupancy, self.encoder.config.grid)
         b, t = past_occupancy.shape[:2]
         self._check_history("past_occupancy", t)
-        check_finite("past_motion", past_motion)
-        is_poses = past_motion.dim() == 4 and tuple(past_motion.shape[-2:]) == (4, 4)
-        expected = [b, t, 4, 4] if is_poses else [b, t - 1, 2]
-        if list(past_motion.shape) != expected:
-            raise UsageError(f"past_motion must be poses [B, T, 4, 4] or displacements [B, T - 1, 2] for the "
-                             f"{t} frames of past_occupancy (B = {b}), got shape {list(past_motion.shape)}")
+        check_past_motion(past_motion, b, t)
+        self._check_plan(b, t - 1, steps, future_actions, command, "past_motion", past_motion)
         poses, actions = split_past_motion(past_motion)
         past = self.encode_history(past_occupancy, poses)
         return self.forecast_from_triplanes(past, actions, steps, future_actions, past_occupancy[:, -1], poses,
                                             self.agent_velocity(past_occupancy, poses), command,
                                             self.fit_boxes(past_occupancy, poses))
+
+    def _check_plan(self, batch: int, past_actions: int, steps: int, future_actions: Tensor | None,
+                    command: Tensor | None, motion_name: str, motion: Tensor) -> None:
+        """What the forecast is asked to do: ``steps`` planned from the past ``motion`` (argument
+        ``motion_name``, ``past_actions`` displacements) or the given ``future_actions``, with
+        ``command``."""
+        check_command(command, batch, self.reads_command)
+        trained = self.forecaster.steps
+        if future_actions is None:
+            if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+                raise UsageError(f"steps must be a positive integer, got {steps!r}")
+            check_planner_dtype(motion_name, motion, self.planner)
+            check_horizon(steps, supported_steps(self.forecaster, self.planner, past_actions, True), trained, "steps")
+        else:
+            check_future_actions(future_actions, batch)
+            limit = supported_steps(self.forecaster, self.planner, past_actions, False)
+            check_horizon(future_actions.shape[1], limit, trained, "future_actions")
 
     def _check_history(self, name: str, frames: int) -> None:
         """The forecaster was trained on ``history`` past frames (the present included); fewer
@@ -518,17 +504,16 @@ class T3Former(nn.Module):
         tracker prior; ``command``: as for :meth:`forecast`; ``boxes``: the agents' fitted boxes
         (:meth:`fit_boxes`) for a model that draws them.
         Refuses (:class:`~t3fast.errors.UsageError`) a number of past frames ``T`` other
-        than the model's ``history`` and non-finite motion, as :meth:`forecast` does."""
+        than the model's ``history``, non-finite or unbounded motion and more future steps
+        than the model forecasts, as :meth:`forecast` does."""
         self._check_history("past", past.xy.shape[1])
-        check_finite("past_actions", past_actions)
+        check_steps("past_actions", past_actions)
         if past_poses is not None:
             check_finite("past_poses", past_poses)
-        check_command(command, past.xy.shape[0], self.reads_command)
-        if future_actions is None:
-            if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-                raise UsageError(f"steps must be a positive integer, got {steps!r}")
-        else:
-            check_future_actions(future_actions, past.xy.shape[0])
+            check_steps("past_poses", steps_into(past_poses[..., :2], past_poses[:, :1, :2]),
+                        " (from the frame before it)")
+        self._check_plan(past.xy.shape[0], past_actions.shape[1], steps, future_actions, command,
+                         "past_actions", past_actions)
         if future_actions is None:
             futures, _, actions, motion = self.rollout(past, past_actions, steps, velocity=velocity, command=command)
             poses = planned_poses(actions, past_actions, past_poses)

@@ -101,6 +101,55 @@ cudaError_t triplane_decode_forward(const Triplane<T>& planes, const Query<T>& q
                                     int pe_freqs, const Mlp<T>& mlp, T* logits, uint8_t* labels,
                                     cudaStream_t stream);
 
+// ---- the fused forward on tensor cores (sm_80 and newer; triplane_decode_mma_kernel.cu)
+//
+// The MLP runs as warp-level matrix products with fp32 accumulation in the precision Mma:
+// __half, __nv_bfloat16 or Tf32 (float32 inputs rounded to TF32). The plane lookups and the
+// encoding are computed in fp32 from the planes and points (type T) and rounded to Mma once;
+// every hidden layer's output (bias added and ReLU applied in fp32) is rounded to Mma, as
+// torch.nn.functional.linear in that dtype rounds its result; the logits stay fp32 until
+// they are written as T.
+
+struct Tf32 {};  // marks the TF32 precision: operands stored as float, rounded to TF32
+
+template <typename Mma>
+struct MmaStorage {
+  using type = Mma;
+};
+template <>
+struct MmaStorage<Tf32> {
+  using type = float;
+};
+// How the operands of precision Mma are stored: float for Tf32, Mma itself otherwise.
+template <typename Mma>
+using mma_storage_t = typename MmaStorage<Mma>::type;
+
+// Rows and columns of the padded weights (multiples of kMmaPad): the MMA tiles read whole
+// 16 x 16 blocks, and the padding (zeros) leaves the products unchanged.
+constexpr int kMmaPad = 16;
+
+// The MLP with padded parameters: weight[i] [pad(width[i + 1]), pad(width[i])] in storage
+// type S, zero outside the real [width[i + 1], width[i]] block; bias[i] [pad(width[i + 1])]
+// float32, zero-padded. width holds the real (unpadded) widths.
+template <typename S>
+struct MmaMlp {
+  const S* weight[kTriplaneMaxLayers];
+  const float* bias[kTriplaneMaxLayers];
+  int width[kTriplaneMaxLayers + 1];
+  int num_layers;
+};
+
+// Shared memory per block of the tensor-core forward for these widths and operand size
+// (sizeof(mma_storage_t<Mma>): 2 or 4 bytes).
+size_t triplane_decode_mma_shared_bytes(const int* widths, int num_layers, int operand_bytes);
+
+// The fused forward of triplane_decode_forward with the MLP on tensor cores in precision
+// Mma (see above). Needs a device of compute capability 8.0 or newer.
+template <typename T, typename Mma>
+cudaError_t triplane_decode_forward_mma(const Triplane<T>& planes, const Query<T>& query,
+                                        int pe_freqs, const MmaMlp<mma_storage_t<Mma>>& mlp,
+                                        T* logits, uint8_t* labels, cudaStream_t stream);
+
 // Decoder input features [count, channels + 6 * pe_freqs] of the points start ..
 // start + count - 1 of the flattened query range.
 template <typename T>

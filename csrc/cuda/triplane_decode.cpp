@@ -1,22 +1,33 @@
 // CUDA glue of triplane_decode and its backward: CUDA's limits on the arguments, allocation,
 // dtype dispatch and launches of the kernels in triplane_decode_kernel.cu.
 //
-// Forward: one fused kernel (see triplane_decode_kernel.cu).
+// Precision (PyTorch's rules for a linear layer): under CUDA autocast the MLP computes in the
+// autocast dtype; float16 / bfloat16 inputs compute in their dtype; float32 inputs in TF32
+// when torch.backends.cuda.matmul.allow_tf32 is on, else in float32; float64 in float64.
+// Products accumulate in fp32 (double for double) in every case.
+//
+// Forward: one fused kernel: on tensor cores for half, bfloat16 and TF32
+// (triplane_decode_mma_kernel.cu, compute capability 8.0 and newer), on CUDA cores for
+// float32, float64 and on older devices (triplane_decode_kernel.cu).
 // Backward: the query points are processed in chunks of kBackwardChunk. For a chunk, a kernel
 // writes the features [P, C + 6F] (fp32, double for double), the layers are recomputed with
-// cuBLAS GEMMs keeping each layer's input, and the gradient is propagated back through them
-// (grad W_l += G^T A_l, grad b_l += sum_p G, G <- (G W_l) * (A_l > 0)); a second kernel scatters
-// the feature gradient of the C plane channels into the three planes with atomics. The
-// [all points, hidden] tensors are never materialised, and all accumulation is in fp32 (or
-// double) before the final cast to the input dtype.
+// cuBLAS GEMMs in the precision above keeping each layer's input, and the gradient is
+// propagated back through them (grad W_l += G^T A_l, grad b_l += sum_p G,
+// G <- (G W_l) * (A_l > 0)); a second kernel scatters the feature gradient of the C plane
+// channels into the three planes with atomics. The [all points, hidden] tensors are never
+// materialised; the weight, bias and plane gradients accumulate in fp32 (or double) before
+// the final cast to the input dtype.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
+#include <ATen/autocast_mode.h>
 #include <c10/core/DeviceGuard.h>
+#include <c10/core/impl/LocalDispatchKeySet.h>
 #include <torch/library.h>
 
 #include <algorithm>
 #include <climits>
 #include <tuple>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -90,8 +101,37 @@ cuda::Query<T> query_of(const Problem& p) {
   return q;
 }
 
+// How the MLP of a call computes (see the top of this file).
+enum class Precision { kCudaCores, kHalf, kBFloat16, kTf32 };
+
+// The dtype the MLP computes in: the autocast dtype under CUDA autocast (float64 excepted),
+// else the inputs' dtype.
+at::ScalarType compute_dtype(at::ScalarType input) {
+  if (input != at::kDouble && at::autocast::is_autocast_enabled(at::kCUDA)) {
+    return at::autocast::get_autocast_dtype(at::kCUDA);
+  }
+  return input;
+}
+
+// The forward kernel's precision; tensor cores need compute capability 8.0.
+Precision forward_precision(const at::Tensor& xy, const char* op) {
+  const at::ScalarType dtype = compute_dtype(xy.scalar_type());
+  const bool float32 = dtype == at::kFloat && xy.scalar_type() == at::kFloat;
+  const bool tf32 = float32 && at::globalContext().allowTF32CuBLAS();
+  if (dtype != at::kHalf && dtype != at::kBFloat16 && !tf32) return Precision::kCudaCores;
+  if (device_attribute(cudaDevAttrComputeCapabilityMajor, xy.get_device(), op) < 8) {
+    return Precision::kCudaCores;
+  }
+  return dtype == at::kHalf ? Precision::kHalf
+         : dtype == at::kBFloat16 ? Precision::kBFloat16
+                                  : Precision::kTf32;
+}
+
+// Bytes per MMA operand of a tensor-core precision.
+int operand_bytes(Precision precision) { return precision == Precision::kTf32 ? 4 : 2; }
+
 // Limits of the fused forward kernel, with errors that name them.
-void check_fused_limits(const Problem& p, const char* op) {
+void check_fused_limits(const Problem& p, Precision precision, const char* op) {
   T3FAST_CHECK(p.layers() <= cuda::kTriplaneMaxLayers, op, "the CUDA kernel supports at most ",
                cuda::kTriplaneMaxLayers, " layers, got ", p.layers());
   T3FAST_CHECK(p.max_width() <= cuda::kTriplaneMaxWidth, op,
@@ -99,15 +139,75 @@ void check_fused_limits(const Problem& p, const char* op) {
                "features) up to ",
                cuda::kTriplaneMaxWidth, ", got widths ", at::IntArrayRef(p.widths));
   std::vector<int> widths(p.widths.begin(), p.widths.end());
+  const int layers = static_cast<int>(p.layers());
   const bool dbl = p.xy.scalar_type() == at::kDouble;
   const size_t need =
-      cuda::triplane_decode_min_shared_bytes(widths.data(), static_cast<int>(p.layers()), dbl);
+      precision == Precision::kCudaCores
+          ? cuda::triplane_decode_min_shared_bytes(widths.data(), layers, dbl)
+          : cuda::triplane_decode_mma_shared_bytes(widths.data(), layers,
+                                                   operand_bytes(precision));
   const int available =
       device_attribute(cudaDevAttrMaxSharedMemoryPerBlockOptin, p.xy.get_device(), op);
   T3FAST_CHECK(need <= static_cast<size_t>(available), op, "layer widths ",
                at::IntArrayRef(p.widths), " need ", need, " bytes of shared memory per block in ",
                p.xy.scalar_type(), " but the device offers ", available,
                "; use narrower layers", dbl ? " or float32" : "");
+}
+
+template <typename Mma>
+constexpr at::ScalarType operand_dtype() {
+  if constexpr (std::is_same_v<Mma, __half>) return at::kHalf;
+  if constexpr (std::is_same_v<Mma, __nv_bfloat16>) return at::kBFloat16;
+  return at::kFloat;  // TF32 operands are stored as float
+}
+
+// The fused forward on tensor cores: the weights zero-padded to multiples of kMmaPad in the
+// operand type and the biases in float32 (the kernel reads whole 16 x 16 tiles), then one
+// launch.
+template <typename T, typename Mma>
+cudaError_t forward_mma(const Problem& p, int64_t pe_freqs, T* logits, uint8_t* labels,
+                        cudaStream_t stream) {
+  using S = cuda::mma_storage_t<Mma>;
+  const auto pad = [](int64_t v) { return (v + cuda::kMmaPad - 1) / cuda::kMmaPad * cuda::kMmaPad; };
+  std::vector<at::Tensor> padded;  // alive until the launch is queued (stream-ordered frees)
+  cuda::MmaMlp<S> mlp;
+  mlp.num_layers = static_cast<int>(p.layers());
+  for (int64_t l = 0; l < p.layers(); ++l) {
+    const int64_t in = p.widths[l];
+    const int64_t out = p.widths[l + 1];
+    at::Tensor w = at::zeros({pad(out), pad(in)}, p.xy.options().dtype(operand_dtype<Mma>()));
+    w.narrow(0, 0, out).narrow(1, 0, in).copy_(p.weights[l]);
+    at::Tensor b = at::zeros({pad(out)}, p.xy.options().dtype(at::kFloat));
+    // rounded to a 16-bit operand type first, as the backward's GEMMs (and autocast's
+    // linear) see the bias
+    b.narrow(0, 0, out).copy_(p.biases[l].to(operand_dtype<Mma>()));
+    mlp.weight[l] = ptr<const S>(w);
+    mlp.bias[l] = ptr<const float>(b);
+    padded.push_back(std::move(w));
+    padded.push_back(std::move(b));
+  }
+  for (size_t i = 0; i < p.widths.size(); ++i) mlp.width[i] = static_cast<int>(p.widths[i]);
+  return cuda::triplane_decode_forward_mma<T, Mma>(
+      triplane_of<T>(p), query_of<T>(p), static_cast<int>(pe_freqs), mlp, logits, labels, stream);
+}
+
+template <typename T>
+cudaError_t forward_mma(const Problem& p, Precision precision, int64_t pe_freqs, T* logits,
+                        uint8_t* labels, cudaStream_t stream) {
+  if constexpr (std::is_same_v<T, double>) {
+    return cudaErrorInvalidValue;  // float64 always runs on CUDA cores
+  } else {
+    if (precision == Precision::kHalf) {
+      return forward_mma<T, __half>(p, pe_freqs, logits, labels, stream);
+    }
+    if (precision == Precision::kBFloat16) {
+      return forward_mma<T, __nv_bfloat16>(p, pe_freqs, logits, labels, stream);
+    }
+    if constexpr (std::is_same_v<T, float>) {
+      return forward_mma<T, cuda::Tf32>(p, pe_freqs, logits, labels, stream);
+    }
+    return cudaErrorInvalidValue;  // TF32 is chosen for float32 inputs only
+  }
 }
 
 at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
@@ -118,14 +218,23 @@ at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, cons
       parse_triplane_args(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, kOp), xy,
       xz, yz, weights, biases, points, kOp);
   const c10::DeviceGuard device_guard(xy.device());
+  // The precision is read from the autocast state; the padding copies must not be cast.
+  const Precision precision = forward_precision(xy, kOp);
+  const c10::impl::ExcludeDispatchKeyGuard no_autocast(c10::autocast_dispatch_keyset);
   at::Tensor out = p.empty_output(xy, argmax);
   if (out.numel() == 0) return out;
-  check_fused_limits(p, kOp);
+  check_fused_limits(p, precision, kOp);
   const cudaStream_t stream = current_stream(xy.get_device());
   cudaError_t err = cudaSuccess;
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, xy.scalar_type(),
                                   "triplane_decode_cuda", [&] {
     using T = cuda_type_t<scalar_t>;
+    T* logits = argmax ? nullptr : ptr<T>(out);
+    uint8_t* labels = argmax ? ptr<uint8_t>(out) : nullptr;
+    if (precision != Precision::kCudaCores) {
+      err = forward_mma<T>(p, precision, pe_freqs, logits, labels, stream);
+      return;
+    }
     cuda::Mlp<T> mlp;
     mlp.num_layers = static_cast<int>(p.layers());
     for (int64_t l = 0; l < p.layers(); ++l) {
@@ -134,9 +243,8 @@ at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, cons
     }
     for (size_t i = 0; i < p.widths.size(); ++i) mlp.width[i] = static_cast<int>(p.widths[i]);
     err = cuda::triplane_decode_forward<T>(triplane_of<T>(p), query_of<T>(p),
-                                           static_cast<int>(pe_freqs), mlp,
-                                           argmax ? nullptr : ptr<T>(out),
-                                           argmax ? ptr<uint8_t>(out) : nullptr, stream);
+                                           static_cast<int>(pe_freqs), mlp, logits, labels,
+                                           stream);
   });
   check_launch(err, kOp);
   return out;
@@ -154,6 +262,10 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
                                                               kOpBwd),
                                  xy, xz, yz, weights, biases, points, kOpBwd);
   const c10::DeviceGuard device_guard(xy.device());
+  // The GEMMs compute in `gemm` (cuBLAS applies allow_tf32 to float32 itself); the casts
+  // below are explicit, so autocast must not cast again.
+  const at::ScalarType gemm = compute_dtype(xy.scalar_type());
+  const c10::impl::ExcludeDispatchKeyGuard no_autocast(c10::autocast_dispatch_keyset);
 
   const at::ScalarType acc = xy.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
   const auto opts = xy.options().dtype(acc);
@@ -163,10 +275,10 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
   const at::Tensor go = grad_out.detach().contiguous().view({total, p.classes()});
   std::vector<at::Tensor> w, b, gw, gb;
   for (int64_t l = 0; l < L; ++l) {
-    w.push_back(p.weights[l].to(acc));
-    b.push_back(p.biases[l].to(acc));
-    gw.push_back(at::zeros_like(w[l]));
-    gb.push_back(at::zeros_like(b[l]));
+    w.push_back(p.weights[l].to(gemm));
+    b.push_back(p.biases[l].to(gemm));
+    gw.push_back(at::zeros(p.weights[l].sizes(), opts));
+    gb.push_back(at::zeros(p.biases[l].sizes(), opts));
   }
   at::Tensor gxy = at::zeros(xy.sizes(), opts);
   at::Tensor gxz = at::zeros(xz.sizes(), opts);
@@ -182,25 +294,32 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
     const cuda::Query<T> query = query_of<T>(p);
     for (int64_t start = 0; start < total; start += kBackwardChunk) {
       const int64_t count = std::min(kBackwardChunk, total - start);
-      std::vector<at::Tensor> acts{features.narrow(0, 0, count)};  // input of each layer
+      const at::Tensor chunk_features = features.narrow(0, 0, count);
       check_launch(cuda::triplane_features<T>(planes, query, static_cast<int>(p.pe_freqs), start,
-                                              count, ptr<A>(acts[0]), stream),
+                                              count, ptr<A>(chunk_features), stream),
                    kOpBwd);
+      std::vector<at::Tensor> acts{chunk_features.to(gemm)};  // input of each layer
       for (int64_t l = 0; l + 1 < L; ++l) {
         acts.push_back(at::addmm(b[l], acts[l], w[l].t()).relu_());
       }
-      at::Tensor g = go.narrow(0, start, count).to(acc);
+      at::Tensor g = go.narrow(0, start, count).to(gemm);
       for (int64_t l = L - 1; l >= 0; --l) {
-        gw[l].addmm_(g.t(), acts[l]);
-        gb[l].add_(g.sum(0));
+        // fp32 accumulation across chunks, whatever the GEMMs' dtype
+        if (gemm == acc) {
+          gw[l].addmm_(g.t(), acts[l]);
+        } else {
+          gw[l].add_(at::mm(g.t(), acts[l], acc));
+        }
+        gb[l].add_(at::sum(g, {0}, false, acc));
         g = at::mm(g, w[l]);
         // ReLU backward: zero where the layer's output was not positive (NaN included).
         if (l > 0) g.masked_fill_(acts[l].gt(0).logical_not(), 0);
       }
       // g = [count, in0] feature gradient; its first C columns belong to the planes.
-      check_launch(cuda::triplane_scatter_grad<T>(planes, query, start, count, ptr<const A>(g),
-                                                  in0, ptr<A>(gxy), ptr<A>(gxz), ptr<A>(gyz),
-                                                  stream),
+      const at::Tensor g_features = g.to(acc).contiguous();
+      check_launch(cuda::triplane_scatter_grad<T>(planes, query, start, count,
+                                                  ptr<const A>(g_features), in0, ptr<A>(gxy),
+                                                  ptr<A>(gxz), ptr<A>(gyz), stream),
                    kOpBwd);
     }
   });

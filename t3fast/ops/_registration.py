@@ -10,6 +10,8 @@ ops' schemas."""
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import torch
 
 ops = torch.ops.t3fast
@@ -62,20 +64,33 @@ def _triplane_decode_backward_fake(grad_out, xy, xz, yz, weights, biases, points
     )
 
 
+def _cuda_autocast_dtype(t: torch.Tensor) -> torch.dtype | None:
+    """The dtype the CUDA kernels compute ``t``'s call in under autocast (they read the autocast
+    state themselves), or None outside autocast, on the CPU and for float64."""
+    if t.device.type != "cuda" or t.dtype == torch.float64 or not torch.is_autocast_enabled("cuda"):
+        return None
+    return torch.get_autocast_dtype("cuda")
+
+
 def _triplane_decode_setup(ctx, inputs, output):
     xy, xz, yz, weights, biases, points, grid, pe_freqs, _ = inputs
     ctx.layers = len(weights)
     ctx.grid = grid
     ctx.pe_freqs = pe_freqs
+    # the backward runs outside the forward's autocast region: it recomputes the layers in
+    # the forward's precision, as autograd runs a low-precision op's backward in its dtype
+    ctx.autocast_dtype = _cuda_autocast_dtype(xy)
     ctx.save_for_backward(xy, xz, yz, points, *weights, *biases)
 
 
 def _triplane_decode_backward(ctx, grad):
     xy, xz, yz, points, *params = ctx.saved_tensors
     weights, biases = params[: ctx.layers], params[ctx.layers :]
-    gxy, gxz, gyz, gw, gb = ops.triplane_decode_backward.default(
-        grad, xy, xz, yz, weights, biases, points, ctx.grid, ctx.pe_freqs
-    )
+    region = nullcontext() if ctx.autocast_dtype is None else torch.autocast("cuda", dtype=ctx.autocast_dtype)
+    with region:
+        gxy, gxz, gyz, gw, gb = ops.triplane_decode_backward.default(
+            grad, xy, xz, yz, weights, biases, points, ctx.grid, ctx.pe_freqs
+        )
     # query points and the integer arguments get no gradient
     return gxy, gxz, gyz, list(gw), list(gb), None, None, None, None
 
@@ -235,7 +250,10 @@ def _register_autocast(op: str, device_type: str) -> None:
 
 
 # On CUDA only delta_fuse mixes an autocast output with float32 parameters: the decoder casts
-# its planes itself (it decodes in its weights' dtype) and axis_pool reads one tensor.
+# its planes itself (it decodes in its weights' dtype) and axis_pool reads one tensor. The CUDA
+# triplane_decode has no autocast kernel: it reads the autocast dtype and runs its MLP in it,
+# keeping the planes and query points in their own precision (as grid_sample, which autocast
+# runs in float32).
 for _op, _device_type in (("delta_fuse", "cuda"), ("delta_fuse", "cpu"), ("axis_pool", "cpu"),
                           ("triplane_decode", "cpu")):
     _register_autocast(_op, _device_type)

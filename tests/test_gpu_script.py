@@ -70,7 +70,6 @@ def test_a_stage_past_its_limit_is_killed_and_the_next_still_runs(tmp_path):
     summary = gpu_run.run_stages(ctx, stages, budget=60, log=lambda *a: None)
     statuses = {s["name"]: s["status"] for s in summary["stages"]}
     assert statuses == {"slow": "timeout", "broken": "failed", "fine": "passed"}
-    assert summary["stages"][0]["seconds"] < 30
     assert not summary["passed"]
     assert "hello" in (tmp_path / "fine" / "true.log").read_text()
     assert json.loads((tmp_path / "summary.json").read_text())["stages"][2]["status"] == "passed"

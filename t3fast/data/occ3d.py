@@ -173,8 +173,9 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
     numpy arrays only, no code). Scene names and tokens must be plain folder names, every
     frame's poses finite with unit quaternions, and its trajectories, boxes, names, instance
     tokens and agent trajectories of the documented shapes, with one row per box and values
-    finite in float32. Each field's size is checked against :data:`FIELD_LIMITS` (at most
-    :data:`MAX_BOXES` boxes a frame) before it becomes an array.
+    finite in float32, and each frame listed once (not shared between scenes or positions).
+    Each field's size is checked against :data:`FIELD_LIMITS` (at most :data:`MAX_BOXES` boxes
+    a frame) before it becomes an array.
     """
     path = Path(path)
     if not path.is_file():
@@ -185,6 +186,9 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
     infos = data["infos"]
     if not isinstance(infos, dict):
         raise Occ3DFormatError(f"{path}: 'infos' must map scene names to lists of frames, got {type(infos).__name__}")
+    # a pickle can reference one frame from many places: a small file would then claim (and
+    # cost the checks of) millions of frames, so each frame must be its own object
+    owner: dict[int, str] = {}
     for scene, frames in infos.items():
         check_name(scene, f"{path}: scene name")
         if not isinstance(frames, (list, tuple)):
@@ -194,6 +198,9 @@ def read_infos(path: str | Path) -> dict[str, list[dict[str, Any]]]:
             where = f"{path}: scene {scene!r} frame {k}"
             if not isinstance(frame, dict):
                 raise Occ3DFormatError(f"{where} must be a dict, got {type(frame).__name__}")
+            if id(frame) in owner:
+                raise Occ3DFormatError(f"{where} is the same frame as {owner[id(frame)]}: every frame is listed once")
+            owner[id(frame)] = f"scene {scene!r} frame {k}"
             for key in ("token", "ego2global_translation", "ego2global_rotation"):
                 if key not in frame:
                     raise Occ3DFormatError(f"{where} has no {key!r}")

@@ -176,3 +176,17 @@ def test_repeated_instance_token_among_many_is_named(infos, tmp_path, where):
     twice = tokens[-1]
     with pytest.raises(DataFormatError, match=rf"frame 3 \(token .*\): 'instance_tokens' has {twice!r} twice$"):
         read_infos(path)
+
+
+def test_a_frame_listed_twice_is_refused(infos, tmp_path):
+    """A pickle that lists one frame object in many scenes claims frames it does not hold (10,000
+    scenes of one shared frame list cost hours of checks): each frame must be listed once."""
+    scenes = list(infos["infos"])
+    frames = infos["infos"][scenes[0]]
+    infos["infos"] = {f"copy{i:05d}": frames for i in range(10_000)}
+    path = tmp_path / "shared.pkl"
+    path.write_bytes(pickle.dumps(infos))
+    assert path.stat().st_size < 2 * len(pickle.dumps(frames))
+    with pytest.raises(DataFormatError, match=r"scene 'copy00001' frame 0 is the same frame as "
+                                              r"scene 'copy00000' frame 0: every frame is listed once$"):
+        read_infos(path)

@@ -6,6 +6,8 @@ CPU by default; ``T3FAST_BENCH_DEVICE=cuda`` runs the same workloads on the GPU 
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from _peak_memory import peak_memory_mb
@@ -25,37 +27,72 @@ from workloads import (
 )
 
 IMPL_NAMES = ["fused", "reference"]
+# precisions of the decode benchmarks: float32 inputs computed in float32, in TF32
+# (allow_tf32 on) or under bfloat16 autocast; the CPU kernels compute in float32 only
+PRECISIONS = ["fp32", "tf32", "bf16"] if DEVICE == "cuda" else ["fp32"]
+
+
+@contextlib.contextmanager
+def precision(name: str):
+    """The region a benchmark of precision ``name`` runs in: TF32 matmuls allowed for "tf32",
+    bfloat16 autocast for "bf16", neither for "fp32"."""
+    if name == "bf16":
+        with torch.autocast(DEVICE, dtype=torch.bfloat16):
+            yield
+        return
+    previous = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = name == "tf32"
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = previous
+
+
+def _group(name: str, precision_name: str) -> str:
+    """Benchmark group of a decode workload; float32 groups keep their plain names."""
+    return name if precision_name == "fp32" else f"{name} {precision_name}"
 
 
 @pytest.mark.parametrize("impl", IMPL_NAMES)
+@pytest.mark.parametrize("precision_name", PRECISIONS)
 @pytest.mark.parametrize("decoder", ["small", "paper"])
 @pytest.mark.parametrize("query", ["grid", "argmax"])
-def test_decode_grid(benchmark, query, decoder, impl):
+def test_decode_grid(benchmark, query, decoder, precision_name, impl):
     """Full 200x200x16 grid to logits ("grid") or to uint8 labels ("argmax": the argmax mode
-    versus the reference's logits.argmax()), with the peak memory of one call."""
-    benchmark.group = f"decode grid {'fwd' if query == 'grid' else 'labels'} {decoder}"
+    versus the reference's logits.argmax()), with the peak memory of one float32 call."""
+    benchmark.group = _group(f"decode grid {'fwd' if query == 'grid' else 'labels'} {decoder}", precision_name)
     args = make_decode_inputs(decoder)
-    benchmark.extra_info.update(decode_cost(decoder, query))
-    peak = peak_memory_mb(impl, {"decoder": decoder}, query)
+    benchmark.extra_info.update(decode_cost(decoder, query), precision=precision_name)
+    peak = peak_memory_mb(impl, {"decoder": decoder}, query) if precision_name == "fp32" else None
     if peak is not None:
         benchmark.extra_info["peak_mb"] = peak
-    with torch.no_grad():
-        benchmark.pedantic(synchronized(run_decode), args=(impl, args, query), rounds=rounds(3), warmup_rounds=1)
+
+    def call():
+        with torch.no_grad(), precision(precision_name):
+            return run_decode(impl, args, query)
+
+    benchmark.pedantic(synchronized(call), rounds=rounds(3), warmup_rounds=1)
 
 
 @pytest.mark.parametrize("impl", IMPL_NAMES)
+@pytest.mark.parametrize("precision_name", PRECISIONS)
 @pytest.mark.parametrize("decoder", ["small", "paper"])
-def test_decode_points_forward_backward(benchmark, decoder, impl):
-    """200k sampled points: forward, then backward to planes, weights and biases."""
-    benchmark.group = f"decode {POINTS // 1000}k pts fwd+bwd {decoder}"
+def test_decode_points_forward_backward(benchmark, decoder, precision_name, impl):
+    """200k sampled points: forward (in the precision's region, as a training step under AMP),
+    then backward to planes, weights and biases."""
+    benchmark.group = _group(f"decode {POINTS // 1000}k pts fwd+bwd {decoder}", precision_name)
     args = make_decode_inputs(decoder, requires_grad=True)
     planes, weights, biases, _ = args
     params = [*planes, *weights, *biases]
-    benchmark.extra_info.update(decode_cost(decoder, f"points:{POINTS}", backward=True))
+    benchmark.extra_info.update(decode_cost(decoder, f"points:{POINTS}", backward=True), precision=precision_name)
 
     def step():
-        out = run_decode(impl, args, f"points:{POINTS}")
-        return torch.autograd.grad(out, params, torch.ones_like(out))
+        with precision(precision_name):
+            out = run_decode(impl, args, f"points:{POINTS}")
+        # as a training step: the backward outside autocast (it follows the forward's
+        # dtypes), with the TF32 setting of the forward
+        with precision("fp32" if precision_name == "bf16" else precision_name):
+            return torch.autograd.grad(out, params, torch.ones_like(out))
 
     benchmark.pedantic(synchronized(step), rounds=rounds(3), warmup_rounds=1)
 

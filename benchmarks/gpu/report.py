@@ -5,10 +5,11 @@ achieved TFLOP/s and GB/s, fraction of the roofline), the forecasting step (FPS,
 the training bursts (samples/s). Paste the output into the README, or redirect it to
 ``benchmarks/results/gpu/report.md``.
 
-Roofline: every benchmarked op runs in float32 on CUDA cores, so the compute roof is the
-GPU's dense float32 (non-tensor-core) peak; the memory roof is its HBM bandwidth. For a
-workload of F FLOPs and B compulsory bytes taking t seconds the attainable rate is
-``min(P, (F / B) * BW)`` and the table gives ``(F / t) / attainable``. The peaks are looked up
+Roofline: the compute roof is the GPU's dense peak in the precision the fused run computes in
+(``extra_info["precision"]``: fp32 on CUDA cores, the default; tf32 or bf16 on tensor cores);
+the memory roof is its HBM bandwidth. For a workload of F FLOPs and B compulsory bytes taking t
+seconds the attainable rate is ``min(P, (F / B) * BW)`` and the table gives
+``(F / t) / attainable``. The peaks are looked up
 from the GPU's name (table ``PEAKS``) or given with ``--peak-tflops`` / ``--peak-gbps``.
 """
 
@@ -25,19 +26,23 @@ try:
 except ImportError:  # run as a script: benchmarks/gpu/report.py
     from run import junit_counts
 
-# name fragment -> (dense fp32 TFLOP/s without tensor cores, dense bf16 tensor TFLOP/s, HBM GB/s);
-# vendor datasheet figures, first match wins (most specific first)
+# name fragment -> (dense fp32 TFLOP/s without tensor cores, dense TF32 and bf16 tensor TFLOP/s,
+# HBM GB/s); vendor datasheet figures (dense: half the sparse ones), first match wins (most
+# specific first)
 PEAKS = {
-    "H200": (67.0, 989.0, 4800.0),
-    "H100 PCIe": (51.0, 756.0, 2000.0),
-    "H100 NVL": (60.0, 835.0, 3900.0),
-    "H100": (67.0, 989.0, 3350.0),  # SXM (HBM3)
-    "A100-SXM4-80GB": (19.5, 312.0, 2039.0),
-    "A100 80GB PCIe": (19.5, 312.0, 1935.0),
-    "A100": (19.5, 312.0, 1555.0),  # 40 GB
-    "L40S": (91.6, 362.0, 864.0),
-    "RTX 4090": (82.6, 165.0, 1008.0),
+    "H200": (67.0, 494.5, 989.0, 4800.0),
+    "H100 PCIe": (51.0, 378.0, 756.0, 2000.0),
+    "H100 NVL": (60.0, 417.5, 835.0, 3900.0),
+    "H100": (67.0, 494.5, 989.0, 3350.0),  # SXM (HBM3)
+    "A100-SXM4-80GB": (19.5, 156.0, 312.0, 2039.0),
+    "A100 80GB PCIe": (19.5, 156.0, 312.0, 1935.0),
+    "A100": (19.5, 156.0, 312.0, 1555.0),  # 40 GB
+    "L40S": (91.6, 183.0, 362.0, 864.0),
+    "RTX 4090": (82.6, 82.6, 165.0, 1008.0),
 }
+# precision of a benchmark -> its compute roof's index in a PEAKS entry
+ROOF_INDEX = {"fp32": 0, "tf32": 1, "bf16": 2, "fp16": 2}
+HBM = 3  # index of the memory roof
 
 
 def peaks_for(gpu: str | None) -> tuple[str, tuple[float, float, float]] | None:
@@ -91,7 +96,7 @@ def stages_section(out: Path) -> list[str]:
     return _table(["stage", "status", "time (s)", "detail"], rows, {2})
 
 
-def ops_section(out: Path, peaks: tuple[float, float, float] | None) -> list[str]:
+def ops_section(out: Path, peaks: tuple[float, float, float, float] | None) -> list[str]:
     data = _read_json(out / "ops" / "benchmarks.json")
     if data is None:
         return ["No op benchmarks (ops/benchmarks.json missing)."]
@@ -105,11 +110,12 @@ def ops_section(out: Path, peaks: tuple[float, float, float] | None) -> list[str
         t_r = ref["stats"]["median"] if ref else None
         info = (fused or ref)["extra_info"]
         flops, nbytes = info.get("flops"), info.get("bytes")
+        precision = info.get("precision", "fp32")
         tflops = flops / t_f / 1e12 if flops and t_f else None
         gbps = nbytes / t_f / 1e9 if nbytes and t_f else None
         roof, bound = None, "–"
         if peaks and flops and nbytes and t_f:
-            peak_flops, peak_bw = peaks[0] * 1e12, peaks[2] * 1e9
+            peak_flops, peak_bw = peaks[ROOF_INDEX[precision]] * 1e12, peaks[HBM] * 1e9
             attainable = min(peak_flops, flops / nbytes * peak_bw)
             bound = "compute" if attainable == peak_flops else "memory"
             roof = 100 * (flops / t_f) / attainable
@@ -117,19 +123,21 @@ def ops_section(out: Path, peaks: tuple[float, float, float] | None) -> list[str
         if fused and ref and "peak_mb" in fused["extra_info"] and "peak_mb" in ref["extra_info"]:
             mem = f"{fused['extra_info']['peak_mb']:.0f} / {ref['extra_info']['peak_mb']:.0f}"
         rows.append([
-            group, _fmt(t_f and t_f * 1e3, ".3f"), _fmt(t_r and t_r * 1e3, ".3f"),
+            group, precision, _fmt(t_f and t_f * 1e3, ".3f"), _fmt(t_r and t_r * 1e3, ".3f"),
             _fmt(t_r / t_f if t_f and t_r else None, ".1f") + ("x" if t_f and t_r else ""),
             _fmt(flops and flops / 1e9, ".2f"), _fmt(nbytes and nbytes / 1e6, ".1f"),
             _fmt(tflops, ".2f"), _fmt(gbps, ".0f"), _fmt(flops and nbytes and flops / nbytes, ".1f"),
             bound, _fmt(roof, ".1f"), mem,
         ])
-    header = ["workload", "fused (ms)", "reference (ms)", "speedup", "GFLOP", "MB moved", "fused TFLOP/s",
+    header = ["workload", "precision", "fused (ms)", "reference (ms)", "speedup", "GFLOP", "MB moved", "fused TFLOP/s",
               "fused GB/s", "FLOP/byte", "bound", "% of roofline", "peak MB fused / ref"]
-    lines = _table(header, rows, set(range(1, 12)) - {9})
+    lines = _table(header, rows, set(range(2, 13)) - {10})
     if peaks:
-        lines += ["", f"Roofline: {peaks[0]:g} TFLOP/s dense fp32 (CUDA cores; {peaks[1]:g} TFLOP/s dense bf16 on "
-                      f"tensor cores, unused by these fp32 ops), {peaks[2] / 1000:g} TB/s HBM. Bytes are compulsory "
-                      "traffic (inputs read once, outputs written once); medians of pytest-benchmark rounds."]
+        lines += ["", f"Roofline: {peaks[0]:g} TFLOP/s dense fp32 (CUDA cores), {peaks[1]:g} TFLOP/s dense TF32 and "
+                      f"{peaks[2]:g} TFLOP/s dense bf16 (tensor cores), {peaks[HBM] / 1000:g} TB/s HBM; each row "
+                      "against the compute roof of its precision (fp32: float32 inputs without TF32; tf32: "
+                      "allow_tf32 on; bf16: float32 inputs under bfloat16 autocast). Bytes are compulsory traffic "
+                      "(inputs read once, outputs written once); medians of pytest-benchmark rounds."]
     else:
         lines += ["", "No roofline: unknown device peaks (give --peak-tflops and --peak-gbps)."]
     return lines
@@ -187,9 +195,9 @@ def report(out: Path, peak_tflops: float | None = None, peak_gbps: float | None 
     found = peaks_for(gpu)
     peaks = found[1] if found else None
     if peak_tflops or peak_gbps:
-        base = peaks or (0.0, 0.0, 0.0)
-        peaks = (peak_tflops or base[0], base[1], peak_gbps or base[2])
-        peaks = peaks if peaks[0] and peaks[2] else None
+        base = peaks or (0.0, 0.0, 0.0, 0.0)
+        peaks = (peak_tflops or base[0], base[1], base[2], peak_gbps or base[HBM])
+        peaks = peaks if peaks[0] and peaks[HBM] else None
     parts = [
         header_section(out), ["", "### Stages", ""], stages_section(out), ["", "### CUDA tests", ""],
         tests_section(out), ["", "### Op benchmarks: fused vs reference", ""], ops_section(out, peaks),

@@ -239,7 +239,7 @@ STAGES = [
     Stage("env", "environment", 60, 10, _env_steps, _check_json("env.json")),
     Stage("build", "CUDA build", 240, 30, _build_steps, _check_json("build_info.json")),
     Stage("tests", "CUDA tests", 150, 45, _test_steps, _check_tests),
-    Stage("ops", "op benchmarks", 120, 45, _ops_steps, _check_ops),
+    Stage("ops", "op benchmarks", 180, 45, _ops_steps, _check_ops),  # decode in fp32, TF32 and bf16
     Stage("forecast", "forecasting step", 270, 60, _forecast_steps, _check_forecast),
     Stage("train_ae", "train-ae burst", 80, 45, _train_ae_steps, _check_train),
     Stage("train_wm", "train-wm burst", 100, 60, _train_wm_steps, _check_train),

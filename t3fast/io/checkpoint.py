@@ -163,13 +163,7 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
-    try:
-        state = load_checkpoint(path)
-    except CheckpointError:
-        raise
-    except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
-        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
+    state = load_readable_checkpoint(path)
     kinds = (kind,) if isinstance(kind, str) else kind
     wanted = " or a ".join(kinds)
     found = checkpoint_kind(state)
@@ -192,11 +186,36 @@ def read_checkpoint(path: str | Path, kind: str | tuple[str, ...]) -> dict[str, 
 def check_finite(weights: Mapping[str, torch.Tensor], path: str | Path) -> None:
     """Raises :class:`~t3fast.errors.CheckpointError` naming the first floating-point weight
     that holds a NaN or an infinity: a model loaded with it would forecast wrong without a word."""
-    for key, value in weights.items():
-        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
-            bad = int((~torch.isfinite(value)).sum())
-            raise CheckpointError(f"{path}: weight {key!r} is not finite ({bad} of its {value.numel()} values are "
-                                  "NaN or infinite)")
+    key = first_nonfinite(weights)
+    if key is not None:
+        value = weights[key]
+        bad = int((~torch.isfinite(value)).sum())
+        raise CheckpointError(f"{path}: weight {key!r} is not finite ({bad} of its {value.numel()} values are "
+                              "NaN or infinite)")
+
+
+def first_nonfinite(tensors: Mapping[str, Any]) -> str | None:
+    """The name of the first floating-point tensor in ``tensors`` holding a NaN or an infinity,
+    else None. One host synchronisation for all of them (they must share a device)."""
+    floats = {k: t for k, t in tensors.items() if isinstance(t, torch.Tensor) and t.is_floating_point()}
+    if not floats:
+        return None
+    finite = torch.stack([torch.isfinite(t).all() for t in floats.values()])
+    if bool(finite.all()):
+        return None
+    return list(floats)[int((~finite).nonzero()[0, 0])]
+
+
+def load_readable_checkpoint(path: str | Path) -> Any:
+    """:func:`load_checkpoint`, with any failure to read ``path`` (cut short, not a zip, a
+    payload torch refuses) as a one-line :class:`~t3fast.errors.CheckpointError` naming it."""
+    try:
+        return load_checkpoint(path)
+    except CheckpointError:
+        raise
+    except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
 
 
 def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16,

@@ -16,33 +16,15 @@ import torch
 from torch import nn
 
 from t3fast.errors import CheckpointError
-from t3fast.io.checkpoint import load_checkpoint
+from t3fast.io.checkpoint import first_nonfinite, load_readable_checkpoint
 
 #: what the trainer writes into a checkpoint and needs back to go on from it
 TRAINING_KEYS = ("model", "optimizer", "scheduler", "scaler", "step", "best_score", "rng")
 
 
-def first_nonfinite(tensors: Mapping[str, Any]) -> str | None:
-    """The name of the first floating-point tensor in ``tensors`` holding a NaN or an infinity,
-    else None. One host synchronisation for all of them (they must share a device)."""
-    floats = {k: t for k, t in tensors.items() if isinstance(t, torch.Tensor) and t.is_floating_point()}
-    if not floats:
-        return None
-    finite = torch.stack([torch.isfinite(t).all() for t in floats.values()])
-    if bool(finite.all()):
-        return None
-    return list(floats)[int((~finite).nonzero()[0, 0])]
-
-
 def read_training_checkpoint(path: Path) -> dict[str, Any]:
     """The state saved by the trainer in ``path``, once it is known to be readable, complete and finite."""
-    try:
-        state = load_checkpoint(path, map_location="cpu")
-    except CheckpointError:
-        raise
-    except Exception as exc:  # torch.load fails in many ways on a file that is not a checkpoint
-        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
+    state = load_readable_checkpoint(path)
     _require_training_keys(state, path)
     _require_finite(state, path)
     return state

@@ -45,10 +45,10 @@ from torch.utils.data import DataLoader
 
 from t3fast.device import require_device
 from t3fast.errors import CheckpointError, DivergenceError
-from t3fast.io.checkpoint import save_checkpoint
+from t3fast.io.checkpoint import first_nonfinite, save_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.training.batch_sampler import ResumableBatchSampler
-from t3fast.training.checkpoint_checks import first_nonfinite, load_weights, read_training_checkpoint
+from t3fast.training.checkpoint_checks import load_weights, read_training_checkpoint
 from t3fast.training.configs import TrainConfig
 from t3fast.training.distributed import (
     all_gather_object,

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from t3fast.ops import reference
 from tests.ops.lowp_reference import kink_free_upstream, rounded_decode
-from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, backward_case, decoder, decode_gradients, points_pair
+from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, backward_case, decode_gradients, decoder, points_pair
 
 
 @pytest.mark.parametrize("mode", ["grid", "points"])

@@ -80,10 +80,10 @@ def _demo(args: argparse.Namespace) -> int:
     output_dir(args.out)  # before any model runs
     start = time.perf_counter()
     device = default_device()
-    models = load_models(checkpoint_paths(args.ckpt_dir, args.ablations), device)
+    models, steps = load_models(checkpoint_paths(args.ckpt_dir, args.ablations), device)
     print(f"models: {', '.join(models)} ({device})")
     dataset = SyntheticDriving("test", args.scenes, stride=args.stride)
-    results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device)
+    results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device, checkpoint_steps=steps)
     title = f"synthetic test split: {args.scenes} held-out scenes, {len(dataset)} windows, device {device}"
     paths = list(write_report(results, args.out, title))
     per_scene = len(dataset) // args.scenes

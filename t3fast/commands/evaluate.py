@@ -48,19 +48,22 @@ def add_evaluation_commands(sub: argparse._SubParsersAction) -> None:
     forecast.set_defaults(func=_forecast)
 
 
-def load_models(paths: list[Path], device: torch.device) -> dict:
-    """Stage-2 checkpoints keyed by method name (see :func:`t3fast.evaluation.report.method_name`)."""
+def load_models(paths: list[Path], device: torch.device) -> tuple[dict, dict[str, int | None]]:
+    """Stage-2 checkpoints keyed by method name (see :func:`t3fast.evaluation.report.method_name`),
+    and the training step each checkpoint was saved at (its ``step``; None where it has none)."""
     from t3fast.evaluation.report import method_name
-    from t3fast.pretrained import load_world_model
+    from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
+    from t3fast.pretrained import resolve, world_model_from_checkpoint
 
-    models = {}
+    models, steps = {}, {}
     for path in paths:
-        model = load_world_model(path, device)
+        state = read_checkpoint(resolve(path), WORLD_MODEL)
+        model = world_model_from_checkpoint(state, path).to(device).eval()
         name = method_name(model)
         if name in models:
             raise ValueError(f"{path}: a second {name!r} model; pass one checkpoint per method")
-        models[name] = model
-    return models
+        models[name], steps[name] = model, state.get("step")
+    return models, steps
 
 
 @torch.no_grad()
@@ -82,12 +85,12 @@ def _eval(args: argparse.Namespace) -> int:
     if args.out:
         output_dir(args.out)
     device = default_device()
-    models = load_models(args.ckpt, device)
+    models, steps = load_models(args.ckpt, device)
     dataset = SyntheticDriving(args.split, args.scenes, stride=args.stride)
     if len(dataset) == 0:
         raise UsageError(f"nothing to evaluate: {args.scenes} {args.split} scenes hold no 11-frame window")
     results = evaluate_methods(models, dataset, list(range(len(dataset))), device=device,
-                               baselines=not args.no_baselines, use_mask=args.mask)
+                               baselines=not args.no_baselines, use_mask=args.mask, checkpoint_steps=steps)
     title = f"synthetic {args.split}: {args.scenes} scenes, {len(dataset)} windows, device {device}"
     print(metrics_markdown(results, title))
     if args.out:

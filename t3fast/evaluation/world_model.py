@@ -13,8 +13,8 @@ for L2, a rate for collisions; ``None`` where a metric does not apply)::
 ``absent`` rule) averaged over the agent classes ``MOVING_CLASSES`` (bicycle, bus, car,
 construction vehicle, motorcycle, pedestrian, trailer, truck), what a world model must move.
 
-:func:`measure_speed` adds ``fps`` (the full forecasting step at batch 1: forecaster, planner,
-decoding of the 6 future frames to labels, after warm-up), ``peak_memory_mb`` and ``params``.
+:func:`measure_speed` adds ``fps`` (the whole forecast at batch 1, ``model.forecast`` from the past
+labels and poses, after warm-up), ``peak_memory_mb`` and ``params``.
 """
 
 from __future__ import annotations
@@ -273,27 +273,23 @@ def _reset_peak_rss() -> bool:
 
 @torch.no_grad()
 def measure_speed(model: T3Former, sample_batch: DrivingBatch, warmup: int = 1, iters: int = 3) -> dict:
-    """``{"fps", "peak_memory_mb", "params"}`` of the forecasting step at batch 1.
+    """``{"fps", "peak_memory_mb", "params"}`` of the whole forecast at batch 1.
 
-    The step is the agents' velocities (a tracker prior), forecaster + planner + decoding of the
-    6 future frames to labels, from the encoded past frames (a streaming user encodes each new
-    frame once). Peak memory: on CUDA
-    the allocator's peak during the step (tensors only, weights included); on CPU the peak
-    resident set of the whole process during the step (Linux; weights, libraries and
-    interpreter included), else None.
+    The timed call is ``model.forecast(past_occupancy, past_motion)`` on the first window's past
+    labels and poses, what a user calls: encoding the past frames into the present frame, the
+    agents' velocities and fitted boxes, the forecaster, the planner (without a route command)
+    and the 6 future frames rendered to labels; the mean of ``iters`` calls after ``warmup``.
+    Peak memory: on CUDA the allocator's peak during the calls (tensors only, weights
+    included); on CPU the peak resident set of the whole process during them (Linux; weights,
+    libraries and interpreter included), else None.
     """
     model.eval()
     device = next(model.parameters()).device
     batch = sample_batch.to(device)
-    poses, actions = split_past_motion(batch.ego_poses[:1, : PRESENT + 1])
-    past = model.encode_history(batch.past_occ[:1], poses)
-    present = batch.past_occ[:1, -1]
+    past_occupancy, past_poses = batch.past_occ[:1], batch.ego_poses[:1, : PRESENT + 1]
 
     def step() -> None:
-        velocity = model.agent_velocity(batch.past_occ[:1], poses)  # from the newest frame: part of the step
-        boxes = model.fit_boxes(batch.past_occ[:1], poses)
-        model.forecast_from_triplanes(past, actions, NUM_FUTURE, present=present, past_poses=poses, velocity=velocity,
-                                      boxes=boxes)
+        model.forecast(past_occupancy, past_poses)
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 

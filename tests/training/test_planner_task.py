@@ -137,7 +137,7 @@ def test_train_planner_retrains_only_the_planner_and_its_checkpoints_are_world_m
     assert load_world_model(out / "last.pt").planner.scene is None  # the preset's planner: past motion and command
     capsys.readouterr()
     assert main(["eval", str(out / "last.pt"), "--scenes", "1", "--stride", "29", "--out", str(tmp_path / "ev")]) == 0
-    assert "t3former_no_command" in json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert "t3former_command" in json.loads((tmp_path / "ev" / "metrics.json").read_text())
 
 
 def test_train_planner_refuses_a_world_model_without_a_route_planner(world_ckpt, tmp_path):

@@ -94,19 +94,20 @@ def test_the_route_planner_trains_with_the_forecaster_and_is_scored_with_and_wit
     capsys.readouterr()
     assert main(["eval", str(out / "last.pt"), "--scenes", "1", "--stride", "29", "--out", str(tmp_path / "ev")]) == 0
     metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
-    assert {"t3former", "t3former_no_command"} <= set(metrics)
-    assert metrics["t3former_no_command"]["l2_mean"]["avg"] is not None
+    assert {"t3former", "t3former_command"} <= set(metrics)
+    assert metrics["t3former_command"]["l2_mean"]["avg"] is not None
 
 
 def test_eval_writes_the_metrics_schema(world_ckpt, tmp_path, capsys):
     assert main(["eval", str(world_ckpt), "--scenes", "1", "--stride", "29", "--out", str(tmp_path)]) == 0
     assert "| t3former |" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "t3former_no_command", "copy_paste",
+    assert set(metrics) == {"t3former", "t3former_gt_ego", "t3former_decoded", "t3former_command", "copy_paste",
                             "constant_velocity", "constant_turn_rate", "warp_const_vel", "warp_gt_ego",
                             "track_const_vel", "track_gt_ego"}
     assert metrics["t3former_gt_ego"]["l2_at"]["3s"] is None  # steered: plans nothing
-    keys = {"miou", "miou_moving", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params"}
+    keys = {"miou", "miou_moving", "iou", "l2_at", "l2_mean", "collision", "fps", "peak_memory_mb", "params",
+            "checkpoint_step"}
     assert all(set(m) == keys for m in metrics.values())
     model = metrics["t3former"]
     assert set(model["miou"]) == {"0s", "1s", "2s", "3s", "avg"} and set(model["l2_at"]) == {"1s", "2s", "3s", "avg"}

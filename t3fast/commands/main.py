@@ -18,6 +18,7 @@ def build_parser() -> argparse.ArgumentParser:
     from t3fast.commands.demo import add_demo_command
     from t3fast.commands.evaluate import add_evaluation_commands
     from t3fast.commands.export import add_export_command
+    from t3fast.commands.recipe import add_recipe_command
     from t3fast.commands.train import add_training_commands
     from t3fast.commands.view import add_view_command
 
@@ -31,6 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_demo_command(sub)
     add_data_commands(sub)
     add_training_commands(sub)
+    add_recipe_command(sub)
     add_evaluation_commands(sub)
     add_export_command(sub)
     add_view_command(sub)

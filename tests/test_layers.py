@@ -13,7 +13,7 @@ LAYERS = [
     {"errors", "paths", "device", "io"},
     {"ops"},
     {"data"},
-    {"models"},
+    {"agents", "models"},  # the tracker and box fits read the pose geometry of models.ego_motion
     {"pretrained"},
     {"evaluation"},
     {"viz"},

@@ -17,7 +17,7 @@ Rows (Avg mIoU, moving-class Avg mIoU, IoU; classes absent from the windows skip
 An agent (BEV component) takes the box whose present centre is nearest its centroid (within
 6 voxels) and seen until the horizon; the others keep the tracker's velocity.
 
-The same motions drawn as boxes instead of moving voxels (:mod:`t3fast.models.agent_boxes`):
+The same motions drawn as boxes instead of moving voxels (:mod:`t3fast.agents.boxes`):
 
 * ``fitted_boxes``: each agent's box fitted to its columns in the five observed frames, moved by
   the fitted velocity (a classical tracker of boxes; agents without a trusted fit keep the
@@ -32,13 +32,13 @@ import argparse
 
 import torch
 
+from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes
+from t3fast.agents.tracker import TRACK_GATE, agent_velocities, chained_velocities, frame_agents, move_agents
 from t3fast.data.classes import AGENT_CLASSES, FREE, GRID_LOWER, VOXEL_SIZE
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.data.synthetic.world import ON_GROUND, z_level
 from t3fast.evaluation.world_model import MethodOutput, evaluate_many, track_gt_ego_method, warp_gt_ego_method
-from t3fast.models.agent_boxes import draw_agent_boxes, fit_agent_boxes
-from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, chained_velocities, frame_agents, move_agents
 from t3fast.models.ego_motion import compose, planar_poses, relative, unwarp_sequence, warp_sequence
 
 AGENTS = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)

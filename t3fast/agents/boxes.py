@@ -13,7 +13,7 @@ velocity: moving-class mIoU 47.4, against 40.9 moving their voxels by the same v
 to cells; ``benchmarks/tools/motion_ceilings.py``).
 
 Each present agent (8-connected BEV component of vehicle and human columns,
-:func:`~t3fast.models.agent_velocity.frame_agents`) is followed back through the past frames
+:func:`~t3fast.agents.tracker.frame_agents`) is followed back through the past frames
 (nearest component of its class to where its last velocity puts it), and its box is the one
 whose footprint best separates the agent's columns from the columns around them in every
 frame where it was found: a soft inside/outside (a sigmoid of the signed distance to the
@@ -34,12 +34,10 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
-from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, box_footprint
-from t3fast.models.agent_velocity import TRACK_GATE, frame_agents
-from t3fast.models.ego_motion import compose
+from t3fast.agents.tracker import cell_metres, follow_agents, frame_agents
+from t3fast.data.classes import AGENT_CLASSES, NUM_CLASSES, VOXEL_SIZE, box_footprint
 
 MIN_FIT_IOU = 0.5  # footprint IoU over the agent's frames under which it is not drawn as a box
-FOLLOW_GATE = 2.5  # metres between an agent's predicted and found centroid once its velocity is known
 # Adam steps; 200 steps and samples 2 cells out scored the same on 16 validation windows (47.65
 # against 47.64 moving-class mIoU along the true poses) at 1.8x the cost
 FIT_ITERS = 100
@@ -81,44 +79,6 @@ class AgentBoxes:
     future: Tensor | None = None
 
 
-def _metres(cells: Tensor, pose: Tensor) -> Tensor:
-    """Continuous cell coordinates ``[..., 2]`` of a frame with planar ``pose`` (in the present
-    frame) -> metres in the present frame."""
-    lower = cells.new_tensor(GRID_LOWER[:2])
-    local = lower + (cells + 0.5) * VOXEL_SIZE
-    return compose(pose.expand(*local.shape[:-1], 3), torch.cat([local, torch.zeros_like(local[..., :1])], -1))[..., :2]
-
-
-def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
-    """Per present component (the last of ``agents``, :func:`frame_agents` of each frame), the
-    index of its component in every frame, following it back from the present: ``[n, T]``
-    int64, -1 where it was lost (and in every frame before). The first step back searches the
-    tracker's gate, the next ones ``FOLLOW_GATE`` around the position its velocity predicts."""
-    now = agents[-1]
-    n, frames = now["cls"].shape[0], len(agents)
-    match = torch.full((n, frames), -1, dtype=torch.long)
-    match[:, -1] = torch.arange(n)
-    position = _metres(now["centroid"], poses[-1])
-    velocity = torch.zeros_like(position)
-    gate = torch.full((n,), TRACK_GATE, dtype=torch.float64)
-    alive = torch.ones(n, dtype=torch.bool)
-    for t in range(frames - 2, -1, -1):
-        before = agents[t]
-        if before["cls"].shape[0] == 0:
-            break
-        found = _metres(before["centroid"], poses[t])
-        dist = (position - velocity)[:, None].sub(found[None]).norm(dim=-1)
-        dist = dist.masked_fill(now["cls"][:, None] != before["cls"][None], math.inf)
-        nearest, index = dist.min(1)
-        ok = alive & (nearest <= gate)
-        match[ok, t] = index[ok]
-        velocity = torch.where(ok[:, None], position - found[index], velocity)
-        position = torch.where(ok[:, None], found[index], position)
-        gate = torch.where(ok, torch.full_like(gate, FOLLOW_GATE), gate)
-        alive &= ok
-    return match
-
-
 def _samples(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor, reach: Tensor) -> dict[str, Tensor]:
     """The columns that decide each agent's box: in every frame where it was found, those within
     ``reach`` cells of its centroid and ``NEAR`` cells of one of its columns (the far ones say
@@ -146,7 +106,7 @@ def _samples(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor, reac
         side = 2 * half + 1
         near = F.max_pool2d(owned.view(n, 1, side, side).float(), 2 * NEAR + 1, 1, NEAR).view(n, -1) > 0
         keep = (inside & within & near & seen[:, None]).nonzero()
-        out["position"].append(_metres(cells[keep[:, 0], keep[:, 1]].double(), poses[t]))
+        out["position"].append(cell_metres(cells[keep[:, 0], keep[:, 1]].double(), poses[t]))
         out["owned"].append(owned[keep[:, 0], keep[:, 1]].double())
         out["agent"].append(keep[:, 0])
         out["time"].append(torch.full((keep.shape[0],), float(t - (frames - 1)), dtype=torch.float64))
@@ -218,7 +178,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
             own ego frame.
         poses: their planar poses ``[T, 3]`` in the present frame (the last is zero).
     Returns:
-        the present's agents (:func:`frame_agents`) and their :class:`AgentBoxes`.
+        the present's agents (:func:`~t3fast.agents.tracker.frame_agents`) and their :class:`AgentBoxes`.
     """
     if frames.dim() != 4 or poses.shape != (frames.shape[0], 3):
         raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
@@ -238,11 +198,11 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
     offset = columns.double() - now["centroid"][owner]
     spread = empty.clone().scatter_reduce_(0, owner, offset.norm(dim=-1), "amax", include_self=True)
     # start: the present centroid, the last step's velocity, the principal axis and extents
-    centre = _metres(now["centroid"], poses[-1])
+    centre = cell_metres(now["centroid"], poses[-1])
     velocity = torch.zeros_like(centre)
     before = match[:, -2] >= 0 if match.shape[1] > 1 else torch.zeros(n, dtype=torch.bool)
     if bool(before.any()):
-        velocity[before] = centre[before] - _metres(agents[-2]["centroid"][match[before, -2]], poses[-2])
+        velocity[before] = centre[before] - cell_metres(agents[-2]["centroid"][match[before, -2]], poses[-2])
     spread_m = offset * VOXEL_SIZE
     cov = torch.zeros(n, 2, 2, dtype=torch.float64).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])
     axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64))[1][..., 1]
@@ -277,7 +237,7 @@ def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Te
     for t, frame in enumerate(agents):
         seen = match[:, t] >= 0
         if bool(seen.any()):
-            track[seen, t] = _metres(frame["centroid"][match[seen, t]], poses[t])
+            track[seen, t] = cell_metres(frame["centroid"][match[seen, t]], poses[t])
     return track
 
 

@@ -1,12 +1,18 @@
-"""Agents' velocities from the last two observed frames: the classical tracker's motion estimate.
+"""The classical tracker: the agents of a frame, their matches in earlier frames, their velocities.
 
 In the ego-aligned frame (the previous frame moved into the present one with the past poses),
 the columns holding an agent voxel (vehicles and humans) form 8-connected BEV components, each
-with its majority class; a present component's velocity is the displacement of its centroid
-from the nearest previous component of its class within a gate. This is what the tracker
-baselines move agents with (:mod:`t3fast.evaluation.baselines`), and what the flow forecaster
-starts from (:func:`tracker_velocities`): it learns a correction to it rather than finding
-every agent's motion from scratch.
+with its majority class (:func:`frame_agents`). Two ways of matching them back in time:
+
+* centroid matching (:func:`match_components`, :func:`agent_velocities`,
+  :func:`chained_velocities`): a present component's velocity is the displacement of its
+  centroid from the nearest previous component of its class within a gate. This is what the
+  tracker baselines move agents with (:mod:`t3fast.evaluation.baselines`), and what the flow
+  forecaster starts from (:func:`tracker_velocities`): it learns a correction to it rather than
+  finding every agent's motion from scratch;
+* following (:func:`follow_agents`): each present agent followed back through every past frame
+  (in metres, each frame taken into the present one with its pose), searching around where its
+  last velocity puts it: the tracks the fitted boxes (:mod:`t3fast.agents.boxes`) are fitted to.
 """
 
 from __future__ import annotations
@@ -17,11 +23,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from t3fast.data.classes import AGENT_CLASSES, NUM_CLASSES, VOXEL_SIZE
+from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE
+from t3fast.models.ego_motion import compose
 
 # metres an agent's centroid may move between two frames (0.5 s) to be matched: 16 m/s. At 4 m,
 # 13 % of the moving agents' cells of training windows (the fast cars) had no velocity.
 TRACK_GATE = 8.0
+FOLLOW_GATE = 2.5  # metres between an agent's predicted and found centroid once its velocity is known
 VELOCITY_CHANNELS = 4  # tracker_velocities: over the last step, and the chained mean over the last two
 
 
@@ -231,3 +239,40 @@ def blended_velocity(velocity: Tensor) -> Tensor:
     36.9 vs 35.8; 40 val windows: 34.4 vs 32.3; ``benchmarks/tools/motion_ceilings.py``)."""
     return (velocity[:, :2] + velocity[:, 2:4]) / 2
 
+
+def cell_metres(cells: Tensor, pose: Tensor) -> Tensor:
+    """Continuous cell coordinates ``[..., 2]`` of a frame with planar ``pose`` (in the present
+    frame) -> metres in the present frame."""
+    lower = cells.new_tensor(GRID_LOWER[:2])
+    local = lower + (cells + 0.5) * VOXEL_SIZE
+    return compose(pose.expand(*local.shape[:-1], 3), torch.cat([local, torch.zeros_like(local[..., :1])], -1))[..., :2]
+
+
+def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
+    """Per present component (the last of ``agents``, :func:`frame_agents` of each frame), the
+    index of its component in every frame, following it back from the present: ``[n, T]``
+    int64, -1 where it was lost (and in every frame before). The first step back searches the
+    tracker's gate, the next ones ``FOLLOW_GATE`` around the position its velocity predicts."""
+    now = agents[-1]
+    n, frames = now["cls"].shape[0], len(agents)
+    match = torch.full((n, frames), -1, dtype=torch.long)
+    match[:, -1] = torch.arange(n)
+    position = cell_metres(now["centroid"], poses[-1])
+    velocity = torch.zeros_like(position)
+    gate = torch.full((n,), TRACK_GATE, dtype=torch.float64)
+    alive = torch.ones(n, dtype=torch.bool)
+    for t in range(frames - 2, -1, -1):
+        before = agents[t]
+        if before["cls"].shape[0] == 0:
+            break
+        found = cell_metres(before["centroid"], poses[t])
+        dist = (position - velocity)[:, None].sub(found[None]).norm(dim=-1)
+        dist = dist.masked_fill(now["cls"][:, None] != before["cls"][None], math.inf)
+        nearest, index = dist.min(1)
+        ok = alive & (nearest <= gate)
+        match[ok, t] = index[ok]
+        velocity = torch.where(ok[:, None], position - found[index], velocity)
+        position = torch.where(ok[:, None], found[index], position)
+        gate = torch.where(ok, torch.full_like(gate, FOLLOW_GATE), gate)
+        alive &= ok
+    return match

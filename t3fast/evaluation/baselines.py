@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from t3fast.agents.tracker import TRACK_GATE, agent_velocities, frame_agents, move_agents
 from t3fast.data.classes import AGENT_CLASSES, FREE, VOXEL_SIZE
-from t3fast.models.agent_velocity import TRACK_GATE, agent_velocities, frame_agents, move_agents
 from t3fast.models.ego_motion import extrapolate_poses, planar_poses, unwarp_sequence, warp_sequence
 
 

@@ -1,186 +1,40 @@
 """Learned motion of the fitted agent boxes: where each agent drives in the next 3 s.
 
-A box fitted to an agent's past frames (:mod:`t3fast.models.agent_boxes`) gives its constant
-velocity over 2 s, and moving the box along it is the classical box tracker. Agents do not keep
-their velocity: a car brakes behind a slower one, slows down before a turn and follows its lane
-round it, pulls away when the queue ahead does. What the agent will do is written around it: the
-road ahead, the agents in its way and how fast they go. :class:`BoxMotionNet` reads, per agent,
-
-* its kinematics in its own frame (x along its heading, y to its left): the fitted velocity and
-  speed, how its centroid in each past frame departs from that constant velocity (an agent
-  speeding up or braking), its class and size;
-* the scene around it in the same frame (:func:`context_map`, cropped by :func:`crop_context`):
-  ``CROP`` cells of ``CROP_CELL`` metres from ``CROP_BEHIND`` metres behind it to 24 m ahead and
-  8 m to each side: the drivable surface, the walkable ground, obstacles, vehicles, people and
-  riders, and every agent's fitted velocity;
-
-and predicts each future step's correction of the constant-velocity displacement and its yaw
-change. The last layer starts at zero: untrained, the boxes move exactly as the box tracker
-moves them, and training has to beat it. An agent whose fitted speed says it stands
-(:data:`STILL_STEP`) keeps its present pose.
+Agents do not keep their velocity: a car brakes behind a slower one, slows down before a turn
+and follows its lane round it, pulls away when the queue ahead does. What the agent will do is
+written around it: the road ahead, the agents in its way and how fast they go.
+:class:`BoxMotionNet` reads, per agent, its kinematics and its view of the scene
+(:mod:`t3fast.agents.box_kinematics`) and predicts each future step's correction of the
+constant-velocity displacement and its yaw change. The last layer starts at zero: untrained, the
+boxes move exactly as the box tracker moves them, and training has to beat it.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
-from torch.nn import functional as F
 
-from t3fast.data.classes import (
-    BARRIER,
-    BICYCLE,
-    BUS,
-    CAR,
-    CONSTRUCTION_VEHICLE,
-    DRIVEABLE_SURFACE,
-    EGO_LENGTH,
-    EGO_WIDTH,
-    GRID_LOWER,
-    MANMADE,
-    MOTORCYCLE,
-    NUM_CLASSES,
-    OTHER_FLAT,
-    OTHERS,
-    PEDESTRIAN,
-    SIDEWALK,
-    TERRAIN,
-    TRAFFIC_CONE,
-    TRAILER,
-    TRUCK,
-    VEGETATION,
-    VOXEL_SIZE,
-    box_footprint,
+from t3fast.agents.box_kinematics import (  # noqa: F401 (importable from here while callers move)
+    BOX_CLASSES,
+    CONTEXT_CHANNELS,
+    CONTEXT_GROUPS,
+    CROP,
+    STILL_STEP,
+    agent_headings,
+    context_map,
+    corrected_motion,
+    crop_context,
+    ego_step,
+    future_poses,
+    kinematic_features,
+    kinematics,
+    mirror_kinematics,
+    mirror_views,
+    rotate,
 )
-from t3fast.models.agent_boxes import AgentBoxes
+from t3fast.agents.boxes import AgentBoxes
 
-#: BEV groups of the context map: a column belongs to every group one of its voxels is in
-CONTEXT_GROUPS: tuple[tuple[int, ...], ...] = (
-    (DRIVEABLE_SURFACE,),
-    (OTHER_FLAT, SIDEWALK, TERRAIN),
-    (OTHERS, BARRIER, TRAFFIC_CONE, MANMADE, VEGETATION),
-    (BUS, CAR, CONSTRUCTION_VEHICLE, TRAILER, TRUCK),
-    (BICYCLE, MOTORCYCLE, PEDESTRIAN),
-)
-VEHICLES = 3  # the group of the vehicles, the ego's
-CONTEXT_CHANNELS = len(CONTEXT_GROUPS) + 2  # the groups and the agents' velocity (x, y)
-BOX_CLASSES = (BICYCLE, BUS, CAR, CONSTRUCTION_VEHICLE, MOTORCYCLE, PEDESTRIAN, TRAILER, TRUCK)
-CROP = (64, 32)  # crop cells along and across the agent's heading
-CROP_CELL = 0.5  # metres per crop cell
-CROP_BEHIND = 8.0  # metres of the crop behind the agent's centre
-MOVING_STEP = 0.1  # metres per step above which an agent's frame follows its velocity, not its box
-# metres per step (0.4 m/s) of fitted present speed under which an agent stands: it keeps its
-# present pose, whatever the network says. The fit's velocity of a standing agent is 0.03-0.04
-# m/step off and the network moved standing cars 0.18 m and pedestrians 0.28 m by the last step
-# (median; its present box: 0.06 and 0.12); the slowest walkers go 0.5 m/step. On 40 windows
-# of unused training scenes 1120-1129 along the true poses: moving-class mIoU 41.85 -> 42.57
-# (0.1 m/step: 42.49; a still pedestrian's landing error grows again above 0.2)
-STILL_STEP = 0.2
 HIDDEN = 128
-
-
-def ego_step(poses: Tensor) -> Tensor:
-    """The ego's last step ``[2]`` (metres, present frame) from the planar poses ``[T, 3]`` of the
-    observed frames in the present frame: from the previous pose to the origin."""
-    return -poses[-2, :2]
-
-
-def rotate(v: Tensor, angle: Tensor) -> Tensor:
-    """Vectors ``[..., 2]`` turned counter-clockwise by ``angle`` ``[...]``."""
-    c, s = angle.cos(), angle.sin()
-    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
-
-
-def agent_headings(boxes: AgentBoxes) -> Tensor:
-    """Each agent's frame heading ``[n]``: the direction of its fitted velocity where it moves
-    (the box's yaw says nothing of forward or backward), else its box yaw."""
-    v = boxes.velocity
-    moving = v.norm(dim=-1) > MOVING_STEP
-    return torch.where(moving, torch.atan2(v[:, 1], v[:, 0]), boxes.yaw)
-
-
-def kinematics(boxes: AgentBoxes, heading: Tensor) -> Tensor:
-    """Per agent ``[n, F]`` float32: the fitted velocity in its frame (metres per step), its speed,
-    per past frame the centroid's departure from the constant velocity (its frame, metres) and
-    whether it was seen, the class (one-hot over :data:`BOX_CLASSES`), length and width."""
-    if boxes.track is None:
-        raise ValueError("BoxMotionNet reads the agents' tracks: fit the boxes with fit_agent_boxes")
-    track = boxes.track
-    frames = track.shape[1]
-    seen = ~track.isnan().any(-1)
-    ago = -torch.arange(frames - 1, 0, -1, dtype=track.dtype)  # the past frames' times, in steps
-    expected = track[:, -1:] + ago[None, :, None] * boxes.velocity[:, None]
-    departure = rotate(torch.nan_to_num(track[:, :-1] - expected), -heading[:, None].expand(-1, frames - 1))
-    departure = departure * seen[:, :-1, None]
-    velocity = rotate(boxes.velocity, -heading)
-    classes = (boxes.label[:, None] == torch.tensor(BOX_CLASSES, dtype=boxes.label.dtype)).to(track.dtype)
-    return torch.cat([velocity, boxes.velocity.norm(dim=-1, keepdim=True), departure.flatten(1),
-                      seen[:, :-1].to(track.dtype), classes, boxes.length[:, None], boxes.width[:, None]], 1).float()
-
-
-def kinematic_features(frames: int) -> int:
-    """Width of :func:`kinematics` for ``frames`` observed frames."""
-    return 3 + 3 * (frames - 1) + len(BOX_CLASSES) + 2
-
-
-def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_velocity: Tensor) -> Tensor:
-    """The scene the agents drive in, ``[CONTEXT_CHANNELS, X, Y]`` float32: per BEV column of the
-    present labels ``[X, Y, Z]``, which of :data:`CONTEXT_GROUPS` it holds, and on the columns of
-    each agent (``agent_ids`` ``[X, Y]``: 0 off the agents, else 1 + its index in ``boxes``) its
-    fitted velocity (metres per step, present frame). The ego is a vehicle too (the agents behind
-    it follow it), though the labels leave it out: its footprint at the origin is drawn into the
-    vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
-    present = present.cpu().long()
-    held = torch.zeros(NUM_CLASSES, *present.shape[:2], dtype=torch.bool)
-    for z in range(present.shape[2]):
-        held |= F.one_hot(present[:, :, z].clamp(max=NUM_CLASSES - 1), NUM_CLASSES).permute(2, 0, 1).bool()
-    groups = [held[list(g)].any(0) for g in CONTEXT_GROUPS]
-    ids = agent_ids.cpu()
-    velocity = torch.zeros(2, *ids.shape, dtype=torch.float32)
-    on = ids > 0
-    if bool(on.any()):
-        velocity[:, on] = boxes.velocity[ids[on] - 1].T.float()
-    footprint = box_footprint(0.0, 0.0, EGO_LENGTH, EGO_WIDTH, 0.0, tuple(ids.shape))
-    if footprint is not None:
-        rows, cols, inside = footprint
-        ego = torch.from_numpy(inside)
-        groups[VEHICLES][rows, cols] |= ego
-        velocity[:, rows, cols] = torch.where(ego, ego_velocity.float().view(2, 1, 1), velocity[:, rows, cols])
-    return torch.cat([torch.stack(groups).float(), velocity])
-
-
-def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
-    """Each agent's view of the ``context`` ``[C, X, Y]`` (:func:`context_map`):
-    ``[n, C, CROP[0], CROP[1]]``, rows ahead along its ``heading`` ``[n]`` from ``centre``
-    ``[n, 2]`` (metres, present frame), columns from its right to its left (symmetric about its
-    centre line); the velocity channels turned into its frame."""
-    n = centre.shape[0]
-    along = -CROP_BEHIND + CROP_CELL * (torch.arange(CROP[0], dtype=torch.float32) + 0.5)
-    across = CROP_CELL * (torch.arange(CROP[1], dtype=torch.float32) - (CROP[1] - 1) / 2)
-    local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1).to(context.device)  # [A, W, 2]
-    h = heading.float().to(context.device)[:, None, None].expand(-1, *CROP)
-    points = rotate(local.expand(n, -1, -1, -1), h) + centre.float().to(context.device)[:, None, None]
-    size = torch.tensor(context.shape[-2:], dtype=torch.float32, device=context.device)
-    cells = (points - points.new_tensor(GRID_LOWER[:2])) / VOXEL_SIZE - 0.5
-    grid = (cells / (size - 1) * 2 - 1).flip(-1)  # grid_sample's x indexes the last dim (Y)
-    views = F.grid_sample(context.expand(n, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
-                          align_corners=True)
-    v = rotate(views[:, -2:].permute(0, 2, 3, 1), -h).permute(0, 3, 1, 2)
-    return torch.cat([views[:, :-2], v], 1)
-
-
-def mirror_views(views: Tensor) -> Tensor:
-    """:func:`crop_context` views of the left-right mirrored agents (a training augmentation)."""
-    out = views.flip(-1)
-    return torch.cat([out[:, :-1], -out[:, -1:]], 1)
-
-
-def mirror_kinematics(features: Tensor) -> Tensor:
-    """:func:`kinematics` of the left-right mirrored agents (their lateral components negated)."""
-    frames = (features.shape[1] - kinematic_features(1)) // 3 + 1
-    sign = torch.ones(features.shape[1], device=features.device)
-    sign[1] = -1
-    sign[4 : 3 + 2 * (frames - 1) : 2] = -1
-    return features * sign
 
 
 class BoxMotionNet(nn.Module):
@@ -225,26 +79,6 @@ def symmetric_correction(net: BoxMotionNet, views: Tensor, features: Tensor) -> 
     n = views.shape[0]
     both = net(torch.cat([views, mirror_views(views)]), torch.cat([features, mirror_kinematics(features)]))
     return (both[:n] + both[n:] * views.new_tensor(MIRROR_CORRECTION)) / 2  # one batched pass
-
-
-def corrected_motion(velocity: Tensor, heading: Tensor, correction: Tensor) -> tuple[Tensor, Tensor]:
-    """The displacements ``[n, S, 2]`` (present frame, metres) and yaw changes ``[n, S]`` of agents
-    with fitted ``velocity`` ``[n, 2]`` (metres per step) and frame ``heading`` ``[n]``: the
-    constant velocity plus the :class:`BoxMotionNet` ``correction`` ``[n, S, 3]``."""
-    steps = correction.shape[1]
-    k = torch.arange(1, steps + 1, dtype=correction.dtype, device=correction.device)[None, :, None]
-    local = k * rotate(velocity.to(correction.dtype), -heading.to(correction.dtype))[:, None] + correction[..., :2]
-    return rotate(local, heading.to(correction.dtype)[:, None].expand(-1, steps)), correction[..., 2]
-
-
-def future_poses(boxes: AgentBoxes, heading: Tensor, correction: Tensor) -> Tensor:
-    """The boxes' poses ``[S, n, 3]`` (centre metres, yaw; present frame) at every future step:
-    :func:`corrected_motion` from their fitted centre and yaw; an agent slower than
-    :data:`STILL_STEP` stands at its present pose."""
-    displacement, turn = corrected_motion(boxes.velocity, heading, correction.double())
-    moving = (boxes.velocity.norm(dim=-1) >= STILL_STEP).to(displacement.dtype)
-    centre = boxes.centre[None] + displacement.transpose(0, 1) * moving[None, :, None]
-    return torch.cat([centre, (boxes.yaw[None] + turn.T * moving[None])[..., None]], -1)
 
 
 def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, agent_ids: Tensor,

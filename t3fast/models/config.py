@@ -129,10 +129,10 @@ class WorldModelConfig:
     # instead of decoding them from the forecast latent (see T3Former._render_agents)
     render_agents: bool = False
     # draw those agents as the boxes fitted to their columns in the past frames, moved by the same
-    # displacement without rounding it to cells (t3fast.models.agent_boxes)
+    # displacement without rounding it to cells (t3fast.agents.boxes)
     agent_boxes: bool = False
     # move those boxes by a learned network of their kinematics and the scene around them
-    # (t3fast.models.box_motion) instead of the forecaster's displacement
+    # (t3fast.models.box_motion, t3fast.agents.box_kinematics) instead of the forecaster's displacement
     box_motion: bool = False
     history: int = 5
     steps: int = 6

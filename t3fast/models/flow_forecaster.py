@@ -53,7 +53,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from t3fast.models.agent_velocity import VELOCITY_CHANNELS, blended_velocity
+from t3fast.agents.tracker import VELOCITY_CHANNELS, blended_velocity
 from t3fast.models.blocks import group_norm
 from t3fast.models.motion_head import ContextMotionHead, cell_motion_head
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
@@ -109,7 +109,7 @@ def _step_numbers(steps: int, like: Tensor) -> Tensor:
 
 def tracker_motion(velocity: Tensor, steps: int) -> Tensor:
     """What the motion head corrects: step ``k``'s displacement ``(k + 1)`` x the tracker's
-    blended velocity (:func:`~t3fast.models.agent_velocity.blended_velocity`) of the velocities
+    blended velocity (:func:`~t3fast.agents.tracker.blended_velocity`) of the velocities
     ``[B, 4, H, W]``, ``[B, steps, 2, H, W]``."""
     return blended_velocity(velocity).unsqueeze(1) * _step_numbers(steps, velocity)
 
@@ -148,9 +148,9 @@ class FlowTriplaneForecaster(nn.Module):
             cells away in the previous frame (the fastest agents move ~7 cells a step).
         bev: the latent has only the xy plane.
         tracker_prior: start from the tracker's motion: the agents' velocities measured in the
-            last three observed frames (:func:`~t3fast.models.agent_velocity.tracker_velocities`,
+            last three observed frames (:func:`~t3fast.agents.tracker.tracker_velocities`,
             ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
-            ``(k + 1)`` times their blend (:func:`~t3fast.models.agent_velocity.blended_velocity`)
+            ``(k + 1)`` times their blend (:func:`~t3fast.agents.tracker.blended_velocity`)
             plus a correction that the *motion head*
             (a per-cell MLP of the velocities, zero where no agent was measured) predicts; the
             UNet then predicts Delta only. Untrained, such a forecaster is this tracker in the

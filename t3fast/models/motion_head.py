@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from t3fast.models.agent_velocity import VELOCITY_CHANNELS
+from t3fast.agents.tracker import VELOCITY_CHANNELS
 
 MOTION_HIDDEN = 64  # width of the heads' per-cell MLP
 CONTEXT_WIDTH = 32  # channels of the context head's dilated convolutions

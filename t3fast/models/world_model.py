@@ -19,11 +19,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from t3fast.agents.box_kinematics import ego_step
+from t3fast.agents.boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
+from t3fast.agents.tracker import component_shifts, frame_agents, move_agents, tracker_velocities
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, VOXEL_SIZE
 from t3fast.errors import UsageError
-from t3fast.models.agent_boxes import AgentBoxes, draw_agent_boxes, fit_agent_boxes
-from t3fast.models.agent_velocity import component_shifts, frame_agents, move_agents, tracker_velocities
-from t3fast.models.box_motion import BoxMotionNet, ego_step, predict_box_poses
+from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import (
@@ -262,7 +263,7 @@ class T3Former(nn.Module):
     @torch.no_grad()
     def agent_velocity(self, occupancy: Tensor, poses: Tensor) -> Tensor | None:
         """The agents' velocities a forecaster with a tracker prior starts from
-        (:func:`~t3fast.models.agent_velocity.tracker_velocities`, ``[B, 4, H, W]`` plane cells
+        (:func:`~t3fast.agents.tracker.tracker_velocities`, ``[B, 4, H, W]`` plane cells
         per step), measured in the last three past frames ``occupancy[:, -3:]`` (labels
         ``[B, T, X, Y, Z]``) moved into the present frame with ``poses`` ``[B, T, 3]``; None for a
         forecaster without one."""
@@ -274,7 +275,7 @@ class T3Former(nn.Module):
     @torch.no_grad()
     def fit_boxes(self, occupancy: Tensor, poses: Tensor) -> list[AgentBoxes] | None:
         """Per sample, the boxes of the present's agents fitted to the past frames
-        (:func:`~t3fast.models.agent_boxes.fit_agent_boxes`; labels ``[B, T, X, Y, Z]``, each in its
+        (:func:`~t3fast.agents.boxes.fit_agent_boxes`; labels ``[B, T, X, Y, Z]``, each in its
         own ego frame, planar poses ``[B, T, 3]`` in the present frame), what :meth:`render`
         draws them with, and with a :attr:`box_motion` network where it moves them
         (``AgentBoxes.future``); None for a model that does not draw boxes."""
@@ -562,7 +563,7 @@ class T3Former(nn.Module):
         that moves the same agents this way). With the tracker prior and an untrained motion
         head, the agents move exactly as the tracker moves them. Given their fitted ``boxes``,
         the agents with a trusted fit are drawn as their box moved by the same mean
-        displacement, not rounded to cells (:mod:`t3fast.models.agent_boxes`)."""
+        displacement, not rounded to cells (:mod:`t3fast.agents.boxes`)."""
         agents = _AGENTS.to(present.device)
         scenes, drawn = [], []
         for n in range(present.shape[0]):

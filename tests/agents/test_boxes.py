@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK
 from t3fast.data.synthetic.render import draw_boxes
 from t3fast.data.synthetic.world import ON_GROUND, z_level
-from t3fast.models.agent_boxes import draw_agent_boxes, fit_agent_boxes
 from t3fast.models.ego_motion import relative
 
 GRID = (200, 200, 16)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from t3fast.agents.tracker import agent_velocity_field, bev_components, tracker_velocities
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
-from t3fast.models.agent_velocity import agent_velocity_field, bev_components, tracker_velocities
 
 
 def _frames(x: int = 20, y: int = 20, z: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -88,8 +88,8 @@ def test_a_bev_covered_by_agents_everywhere_is_one_component():
 
 
 def test_move_agents_pastes_each_component_at_its_shift_and_frees_where_it_was():
+    from t3fast.agents.tracker import frame_agents, move_agents
     from t3fast.data.classes import AGENT_CLASSES
-    from t3fast.models.agent_velocity import frame_agents, move_agents
 
     frame, _ = _frames()
     frame = frame[0]
@@ -110,8 +110,8 @@ def test_move_agents_pastes_each_component_at_its_shift_and_frees_where_it_was()
 
 
 def test_component_shifts_average_the_displacement_over_each_agent_in_grid_cells():
+    from t3fast.agents.tracker import component_shifts, frame_agents
     from t3fast.data.classes import AGENT_CLASSES
-    from t3fast.models.agent_velocity import component_shifts, frame_agents
 
     frame, _ = _frames()
     frame = frame[0]

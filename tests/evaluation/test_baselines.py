@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from t3fast.agents.tracker import bev_components
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, MANMADE, PEDESTRIAN, TRUCK
 from t3fast.evaluation.baselines import (
     constant_velocity,
@@ -13,7 +14,6 @@ from t3fast.evaluation.baselines import (
     warp_const_vel,
     warp_present,
 )
-from t3fast.models.agent_velocity import bev_components
 
 
 def test_copy_paste_repeats_the_present_frame():

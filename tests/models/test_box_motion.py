@@ -7,16 +7,13 @@ import math
 
 import torch
 
-from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, SIDEWALK
-from t3fast.models.agent_boxes import AgentBoxes
-from t3fast.models.box_motion import (
+from t3fast.agents.box_kinematics import (
     CONTEXT_CHANNELS,
     CROP,
     CROP_BEHIND,
     CROP_CELL,
     STILL_STEP,
     VEHICLES,
-    BoxMotionNet,
     agent_headings,
     context_map,
     corrected_motion,
@@ -26,9 +23,10 @@ from t3fast.models.box_motion import (
     kinematics,
     mirror_kinematics,
     mirror_views,
-    predict_box_poses,
-    symmetric_correction,
 )
+from t3fast.agents.boxes import AgentBoxes
+from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, SIDEWALK
+from t3fast.models.box_motion import BoxMotionNet, predict_box_poses, symmetric_correction
 
 
 def _boxes(track: torch.Tensor, velocity: torch.Tensor, yaw: torch.Tensor, labels: list[int]) -> AgentBoxes:

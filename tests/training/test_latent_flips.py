@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
+from t3fast.agents.tracker import tracker_velocities
 from t3fast.data.classes import CAR, FREE, PEDESTRIAN
 from t3fast.data.sample import PRESENT, WINDOW
-from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.triplane import Triplane
 from t3fast.training.world_model import latent_flips
 from t3fast.training.world_model.latent_cache import AlignedBatch

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from t3fast.models.box_motion import BOX_CLASSES
+from t3fast.agents.box_kinematics import BOX_CLASSES
 from t3fast.models.ego_motion import wrap_angle
 
 CLASS_SLICE = slice(-2 - len(BOX_CLASSES), -2)  # the class one-hot in the kinematics

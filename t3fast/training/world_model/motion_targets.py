@@ -16,9 +16,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from t3fast.agents.box_kinematics import rotate
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
 from t3fast.data.sample import PRESENT
-from t3fast.models.box_motion import rotate
 
 
 def plane_cell_centres(shape: tuple[int, int], device: torch.device) -> Tensor:

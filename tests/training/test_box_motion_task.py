@@ -17,7 +17,7 @@ from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.box_motion import BOX_CLASSES, STILL_STEP, BoxMotionNet, rotate
 from t3fast.models.ego_motion import planar_poses
 from t3fast.pretrained import load_world_model
-from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records, window_record
+from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples, window_record
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
 from t3fast.training.box_motion.task import BoxMotionTask, agent_errors, mirror_agents
 from t3fast.training.configs import BoxMotionConfig
@@ -30,11 +30,14 @@ TINY_BOX = ["data.train_scenes=1", "data.select_scenes=1", "data.frames_per_scen
 def records(tmp_path_factory):
     """The records of one scene's four windows, built once and then read back."""
     windows = SyntheticDriving("train", 1, 14, stride=1)
-    path = tmp_path_factory.mktemp("box-cache") / "train.pt"
-    built = build_records(windows, list(range(len(windows))), path)
-    stamp = path.stat().st_mtime_ns
-    again = build_records(windows, list(range(len(windows))), path)
-    assert path.stat().st_mtime_ns == stamp and len(again) == len(built) == 4  # read, not rebuilt
+    root = tmp_path_factory.mktemp("box-cache")
+    cache = BoxCache(windows, root)
+    built = cache.records(progress=False)
+    stamp = cache.path(0).stat().st_mtime_ns
+    again = BoxCache(windows, root).records(progress=False)
+    assert cache.path(0).stat().st_mtime_ns == stamp and len(again) == len(built) == 4  # read, not rebuilt
+    for a, b in zip(built, again):
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     return windows, again
 
 

@@ -67,7 +67,7 @@ def test_own_frames_preset_encodes_frames_once(world_ckpt, tmp_path):
             f"data.cache_dir={tmp_path / 'cache'}", *TINY_WM, "train.eval_every=0"]
     for run in ("a", "b"):
         assert main([*args, f"train.out_dir={tmp_path / run}", "train.steps=1"]) == 0
-    assert len(list((tmp_path / "cache").glob("triplanes-*.pt"))) == 1
+    assert len(list((tmp_path / "cache").glob("triplanes-*/scene*.pt"))) == 1  # one scene, encoded once
     assert not load_world_model(tmp_path / "a" / "last.pt").world_config.ego_aligned
 
 

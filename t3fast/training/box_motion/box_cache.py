@@ -3,7 +3,11 @@ drawn as a fitted box, its kinematics and its true future motion.
 
 The boxes are fitted once per window (:func:`~t3fast.models.agent_boxes.fit_agent_boxes`, the
 costly part: ~0.5 s a window) and stored with the window's :func:`context_map` (the groups as
-bits, the velocities in float16) in one file, rebuilt when the data or the fit changes (its key).
+bits, the velocities in float16), one entry file per scene of the train split
+(:class:`~t3fast.training.cache_files.SceneFiles`: checked when read, fitted again when broken,
+written atomically), so fitting is resumable and every run that reads a scene shares its file.
+The folder's name (the key) changes with the world's data, the frames per scene, the stride and
+the code of the fit and the features.
 A fitted agent takes the true box whose present centre is nearest its own, within
 ``MATCH_METRES``; the true box's displacement and yaw change at every future step where it is
 annotated are the targets.
@@ -18,25 +22,31 @@ from pathlib import Path
 import torch
 from torch import Tensor
 from torch.utils.data import Dataset
-from tqdm import tqdm
 
-from t3fast.data.sample import PRESENT, DrivingSample, collate_samples
+from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample, collate_samples
+from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models import agent_boxes, box_motion
 from t3fast.models.agent_boxes import fit_agent_boxes
 from t3fast.models.box_motion import agent_headings, context_map, crop_context, ego_step, kinematics
 from t3fast.models.ego_motion import planar_poses, wrap_angle
+from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 
 MATCH_METRES = 1.0
 GROUPS = len(box_motion.CONTEXT_GROUPS)
+BOX_CACHE_FORMAT = 2  # 2: one checked entry file per scene
+#: a record's fields with one row per agent, in the order :class:`BoxMotionSamples` keeps them
+AGENT_FIELDS = ("centre", "heading", "velocity", "features", "displacement", "turn", "valid")
 
 
-def cache_key(dataset_name: str, indices: list[int]) -> str:
-    """Changes with the windows and with the code of the fit and the features."""
-    digest = hashlib.sha256(dataset_name.encode())
-    digest.update(repr(indices).encode())
+def cache_key(windows: SyntheticDriving) -> str:
+    """Changes with the windows (the world's data, the split, the frames per scene, the stride)
+    and with the code of the fit and the features."""
+    code = hashlib.sha256()
     for module in (agent_boxes, box_motion):
-        digest.update(inspect.getsource(module).encode())
-    return digest.hexdigest()[:16]
+        code.update(inspect.getsource(module).encode())
+    scenes = windows.scenes
+    return (f"{world_digest(scenes)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}"
+            f"-{code.hexdigest()[:12]}-v{BOX_CACHE_FORMAT}")
 
 
 def window_record(sample: DrivingSample) -> dict[str, Tensor]:
@@ -74,20 +84,59 @@ def window_record(sample: DrivingSample) -> dict[str, Tensor]:
     }
 
 
-def build_records(dataset, indices: list[int], path: Path, desc: str = "box fits") -> list[dict[str, Tensor]]:
-    """The records of ``dataset``'s windows ``indices``, loaded from ``path`` when its key
-    matches, else built (with a progress bar) and saved there atomically."""
-    key = cache_key(f"{type(dataset).__name__}:{getattr(dataset, 'name', '')}:{len(dataset)}", indices)
-    if path.exists():
-        stored = torch.load(path, weights_only=True)
-        if stored.get("key") == key:
-            return stored["records"]
-    records = [window_record(dataset[i]) for i in tqdm(indices, desc=desc, mininterval=10)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save({"key": key, "records": records}, tmp)
-    tmp.replace(path)
-    return records
+class BoxCache(SceneFiles):
+    """The records of the windows of scenes ``scenes`` of a :class:`SyntheticDriving` split,
+    in ``cache_dir/box-motion-<key>`` (:func:`cache_key`); a scene's file holds its windows'
+    records, the agents of all its windows one after the other (``agents``: how many each has)."""
+
+    kind = "box-motion"
+
+    def __init__(self, windows: SyntheticDriving, cache_dir: str | Path, scenes: range | None = None,
+                 desc: str = "box fits"):
+        key = cache_key(windows)
+        super().__init__(windows, Path(cache_dir) / f"box-motion-{key}", key, scenes)
+        self.desc = desc
+
+    def layout(self, scene: int) -> Layout:
+        windows = self.windows_of(scene)
+        return {"groups": Field(torch.uint8, (windows, GROUPS, "x", "y")),
+                "velocity_map": Field(torch.float16, (windows, 2, "x", "y")),
+                "agents": Field(torch.int64, (windows,)),
+                "centre": Field(torch.float32, ("n", 2)),
+                "heading": Field(torch.float32, ("n",)),
+                "velocity": Field(torch.float32, ("n", 2)),
+                "features": Field(torch.float32, ("n", "features")),
+                "displacement": Field(torch.float32, ("n", NUM_FUTURE, 2)),
+                "turn": Field(torch.float32, ("n", NUM_FUTURE)),
+                "valid": Field(torch.bool, ("n", NUM_FUTURE))}
+
+    def check(self, payload: Payload) -> str | None:
+        """The windows' agent counts add up to the agents held; the groups are bits."""
+        agents, held = payload["agents"], payload["centre"].shape[0]
+        if bool((agents < 0).any()) or int(agents.sum()) != held:
+            return f"agent counts {agents.tolist()} do not add up to the {held} agents held"
+        if payload["groups"].numel() and int(payload["groups"].max()) > 1:
+            return "context groups hold values other than 0 and 1"
+        return None
+
+    def build_scene(self, scene: int) -> Payload:
+        records = [window_record(sample) for sample in self.scene_windows(scene)]
+        return {"groups": torch.stack([r["groups"] for r in records]),
+                "velocity_map": torch.stack([r["velocity_map"] for r in records]),
+                "agents": torch.tensor([r["centre"].shape[0] for r in records], dtype=torch.int64),
+                **{k: torch.cat([r[k] for r in records]) for k in AGENT_FIELDS}}
+
+    def records(self, progress: bool = True) -> list[dict[str, Tensor]]:
+        """Every window's :func:`window_record`, in order; fits the scenes missing or broken."""
+        self.build(progress)
+        out = []
+        for part in self.read_scenes():
+            agents = part["agents"].tolist()
+            by_window = {k: part[k].split(agents) for k in AGENT_FIELDS}
+            for w in range(len(agents)):
+                out.append({"groups": part["groups"][w], "velocity_map": part["velocity_map"][w],
+                            **{k: by_window[k][w] for k in AGENT_FIELDS}})
+        return out
 
 
 class BoxMotionSamples(Dataset):
@@ -100,8 +149,7 @@ class BoxMotionSamples(Dataset):
             context = torch.cat([r["groups"].float(), r["velocity_map"].float()])
             views.append(crop_context(context, r["centre"], r["heading"]).half())
         self.views = torch.cat(views)
-        self.fields = {k: torch.cat([r[k] for r in records]) for k in
-                       ("centre", "heading", "velocity", "features", "displacement", "turn", "valid")}
+        self.fields = {k: torch.cat([r[k] for r in records]) for k in AGENT_FIELDS}
 
     def __len__(self) -> int:
         return self.views.shape[0]

@@ -14,20 +14,20 @@ fitted constant velocity) on them. Checkpoints are whole world models with
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.data.synthetic.dataset import SPLIT_SIZE
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet, corrected_motion, mirror_kinematics, mirror_views, rotate
 from t3fast.pretrained import resolve, world_model_from_checkpoint
-from t3fast.training.box_motion.box_cache import BoxMotionSamples, build_records
+from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
-from t3fast.training.configs import BoxMotionConfig
+from t3fast.training.configs import BoxDataConfig, BoxMotionConfig
 from t3fast.training.distributed import barrier, is_main
 
 VAL_CHUNK = 4096  # agents per forward pass in evaluation
@@ -57,10 +57,19 @@ def agent_errors(correction: Tensor, batch: dict[str, Tensor]) -> Tensor:
     return landing_errors(displacement, turn, batch)
 
 
+def check_scene_count(data: BoxDataConfig) -> None:
+    """The training and the held-out scenes, taken one after the other from the synthetic train
+    split, fit in it."""
+    if data.train_scenes + data.select_scenes > SPLIT_SIZE:
+        raise ConfigError(f"data.train_scenes + data.select_scenes must be at most {SPLIT_SIZE:,} (the scenes of the "
+                          f"synthetic train split), got {data.train_scenes} + {data.select_scenes}")
+
+
 class BoxMotionTask:
     """Trains a box motion network for ``cfg.world_model`` alone (see the module doc)."""
 
     def __init__(self, cfg: BoxMotionConfig):
+        check_scene_count(cfg.data)
         self.cfg = copy.deepcopy(cfg)
         self._state = read_checkpoint(resolve(self.cfg.world_model), WORLD_MODEL)
         if not self._state["config"]["task"].get("model", {}).get("agent_boxes"):
@@ -80,13 +89,11 @@ class BoxMotionTask:
     def _samples(self, first: int, count: int, name: str) -> BoxMotionSamples:
         data = self.cfg.data
         windows = SyntheticDriving("train", first + count, data.frames_per_scene, stride=data.stride)
-        per_scene = len(windows) // (first + count)
-        indices = list(range(first * per_scene, (first + count) * per_scene))
-        path = Path(data.cache_dir) / "box-motion" / f"{name}-scenes{first}-{first + count}-stride{data.stride}.pt"
-        # rank 0 builds (or reads) the records; the others read what it wrote
-        records = build_records(windows, indices, path, desc=f"box fits ({name})") if is_main() else None
+        cache = BoxCache(windows, data.cache_dir, range(first, first + count), desc=f"box fits ({name})")
+        # rank 0 fits (or reads) the records; the others read what it wrote
+        records = cache.records() if is_main() else None
         barrier()
-        return BoxMotionSamples(records if records is not None else build_records(windows, indices, path))
+        return BoxMotionSamples(records if records is not None else cache.records(progress=False))
 
     def train_dataset(self) -> BoxMotionSamples:
         return self._samples(0, self.cfg.data.train_scenes, "train")

@@ -9,7 +9,9 @@ at inference (:meth:`T3Former.agent_velocity`), and each agent's true motion ove
 render moves it by (:class:`~t3fast.training.world_model.motion_loss.AgentTargets`, made once
 from the boxes: a batch's targets cost more than the head's step). Both come from labels only,
 so the folder's name hashes the split's first scene and the plane's size, not the encoder.
-Files are written atomically; building is resumable and shows progress.
+One entry file per scene (:class:`~t3fast.training.cache_files.SceneFiles`: checked when read,
+agent ids in range included, built again when broken, written atomically), so building is
+resumable and shows progress.
 """
 
 from __future__ import annotations
@@ -20,19 +22,17 @@ from pathlib import Path
 import torch
 from torch import Tensor
 from torch.nn import functional as F
-from tqdm import tqdm
 
-from t3fast.data.sample import PRESENT
+from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import save_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
-from t3fast.training.planner.plan_cache import PlanCache, SceneFiles
-from t3fast.training.world_model.latent_cache import world_digest
+from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
+from t3fast.training.planner.plan_cache import PlanCache
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_targets
 from t3fast.training.world_model.motion_targets import agent_motion
 
-MOTION_CACHE_FORMAT = 2  # 2: per-agent targets instead of boxes
+MOTION_CACHE_FORMAT = 3  # 2: per-agent targets instead of boxes; 3: checked entry files
 
 
 @dataclass
@@ -77,6 +77,9 @@ class MotionCache(SceneFiles):
             planes' :class:`~t3fast.training.planner.plan_cache.PlanCache`.
     """
 
+    kind = "motion"
+    desc = "measure agent motion"
+
     def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
         if not getattr(model.forecaster, "tracker_prior", False):
             raise ValueError("the motion head corrects the tracker: the model needs a flow forecaster with "
@@ -85,22 +88,36 @@ class MotionCache(SceneFiles):
         self.planes = PlanCache(windows, model, cache_dir)
         h, w = model.encoder.config.plane_shape[:2]
         scenes = windows.scenes
-        key = (f"{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}-{h}x{w}"
+        key = (f"{world_digest(scenes)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}-{h}x{w}"
                f"-v{MOTION_CACHE_FORMAT}")
-        super().__init__(windows, Path(cache_dir) / f"motion-{key}")
+        super().__init__(windows, Path(cache_dir) / f"motion-{key}", key)
+        self._plane = (h, w)
         self._data: dict[str, Tensor] | None = None
+
+    def layout(self, scene: int) -> Layout:
+        windows = self.windows_of(scene)
+        return {"velocity": Field(torch.float32, (windows, 4, *self._plane)),
+                "cells": Field(torch.int16, (windows, *self._plane)),
+                "visible": Field(torch.bool, (windows, NUM_FUTURE, "agents")),
+                "motion": Field(torch.float32, (windows, NUM_FUTURE, "agents", 2))}
+
+    def check(self, payload: Payload) -> str | None:
+        """Every cell belongs to one of the scene's agents or to none (-1)."""
+        cells, agents = payload["cells"], payload["motion"].shape[2]
+        if cells.numel() and not (-1 <= int(cells.min()) and int(cells.max()) < agents):
+            return f"agent ids {int(cells.min())}..{int(cells.max())} outside -1..{agents - 1}"
+        return None
 
     @torch.no_grad()
     def build(self, progress: bool = True) -> int:
-        """Cache every scene not yet cached, and the planes; returns how many scenes were cached here."""
+        """Cache every scene missing or broken, and the planes; returns how many scenes were cached here."""
         self.planes.build(progress)
-        todo = self.missing()
-        for scene in tqdm(todo, desc="measure agent motion", unit="scene", disable=not progress or not todo):
-            samples = self.scene_windows(scene)
-            velocity = torch.cat([self._velocity(s) for s in samples]).cpu()  # [W, 4, H, W]
-            targets = scene_targets([s.boxes for s in samples], [s.box_valid for s in samples], velocity)
-            save_checkpoint(targets, self.path(scene))
-        return len(todo)
+        return super().build(progress)
+
+    def build_scene(self, scene: int) -> Payload:
+        samples = self.scene_windows(scene)
+        velocity = torch.cat([self._velocity(s) for s in samples]).cpu()  # [W, 4, H, W]
+        return scene_targets([s.boxes for s in samples], [s.box_valid for s in samples], velocity)
 
     def _velocity(self, sample) -> Tensor:
         """The tracker's velocities ``[1, 4, H, W]`` of a window, exactly as at inference."""

@@ -5,12 +5,12 @@ xy plane, the previous frame's (moved into the present ego frame) and the past d
 two encodings per window instead of the eleven of the forecaster's cache
 (:mod:`t3fast.training.world_model.latent_cache`), so it can learn from many more scenes at the
 same cost. The frames are encoded as at inference (:meth:`T3Former.encode_history`). One
-file per scene (float16 planes, about 0.3 MB a window with the small autoencoder), written
-atomically; building is resumable and shows progress. The folder's name hashes the encoder's
-weights and the split's first scene, so a new autoencoder or a changed world builds a new
-cache. A planner that does not read the scene (``planes=False``) needs no encoding at all: its
-cache holds the displacements only (and empty planes).
-"""
+entry file per scene (float16 planes, about 0.3 MB a window with the small autoencoder;
+:class:`~t3fast.training.cache_files.SceneFiles`: checked when read, built again when broken,
+written atomically), so building is resumable and shows progress. The folder's name hashes the
+encoder's weights and the split's first scene, so a new autoencoder or a changed world builds a
+new cache. A planner that does not read the scene (``planes=False``) needs no encoding at all:
+its cache holds the displacements only (and empty planes)."""
 
 from __future__ import annotations
 
@@ -19,19 +19,16 @@ from pathlib import Path
 
 import torch
 from torch import Tensor
-from torch.utils.data import Dataset
-from tqdm import tqdm
 
 from t3fast.data.route import route_command
-from t3fast.data.sample import PRESENT
+from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
+from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 from t3fast.training.triplane_cache import encoder_digest
-from t3fast.training.world_model.latent_cache import world_digest
 
-PLAN_CACHE_FORMAT = 1
+PLAN_CACHE_FORMAT = 2  # 2: checked entry files
 ENCODE_WINDOWS = 8  # windows (two frames each) per encoder call
 
 
@@ -56,38 +53,6 @@ class PlanWindows:
         return self.present, self.previous, self.past_actions, self.command
 
 
-class SceneFiles(Dataset):
-    """The windows of a split cached as one file per scene in ``root``: which windows each scene
-    holds, where its file is, which are missing, and reading them all back."""
-
-    def __init__(self, windows: SyntheticDriving, root: Path):
-        self.windows, self.root = windows, root
-        self._by_scene: dict[int, list[int]] = {}
-        for index in range(len(windows)):
-            self._by_scene.setdefault(windows.locate(index)[0], []).append(index)
-
-    def path(self, scene: int) -> Path:
-        return self.root / f"scene{scene:05d}.pt"
-
-    def missing(self) -> list[int]:
-        """Scenes not yet in the cache."""
-        return [s for s in self._by_scene if not self.path(s).is_file()]
-
-    def scene_windows(self, scene: int) -> list:
-        """The windows (samples) of ``scene``, in order."""
-        return [self.windows[i] for i in self._by_scene[scene]]
-
-    def read_scenes(self) -> list[dict[str, Tensor]]:
-        """Every scene's file, in scene order; refuses a cache that misses some."""
-        missing = self.missing()
-        if missing:
-            raise FileNotFoundError(f"{self.root}: {len(missing)} scenes are not cached yet (build() first)")
-        return [load_checkpoint(self.path(s)) for s in sorted(self._by_scene)]
-
-    def __len__(self) -> int:
-        return len(self.windows)
-
-
 class PlanCache(SceneFiles):
     """The windows of a :class:`SyntheticDriving` split as the route planner reads them.
 
@@ -99,6 +64,8 @@ class PlanCache(SceneFiles):
             ``[B, 0, 1, 1]``), for a planner that does not read the scene.
     """
 
+    kind = "plan"
+
     def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path, planes: bool = True):
         if windows.flip:
             raise ValueError("PlanCache stores windows as generated: pass flip=False")
@@ -107,29 +74,29 @@ class PlanCache(SceneFiles):
         self.model, self.planes = model, planes
         scenes = windows.scenes
         source = encoder_digest(model.encoder) if planes else "motion"
-        key = (f"{source}-{world_digest(windows)}-{scenes.split}-{scenes.frames_per_scene}f"
+        key = (f"{source}-{world_digest(scenes)}-{scenes.split}-{scenes.frames_per_scene}f"
                f"-stride{windows.stride}-v{PLAN_CACHE_FORMAT}")
-        super().__init__(windows, Path(cache_dir) / f"plan-{key}")
+        super().__init__(windows, Path(cache_dir) / f"plan-{key}", key)
+        self.desc = "encode planner windows" if planes else "planner windows"
+        c, (h, w) = model.encoder.config.channels, model.encoder.config.plane_shape[:2]
+        self._plane_shape = (c, h, w) if planes else (0, 1, 1)
         self._data: dict[str, Tensor] | None = None
 
-    @torch.no_grad()
-    def build(self, progress: bool = True) -> int:
-        """Cache (encode) every scene not yet cached; returns how many were cached."""
-        todo = self.missing()
+    def layout(self, scene: int) -> Layout:
+        windows = self.windows_of(scene)
+        return {"xy": Field(torch.float16, (windows, 2, *self._plane_shape)),
+                "past_actions": Field(torch.float32, (windows, NUM_PAST, 2)),
+                "future_actions": Field(torch.float32, (windows, NUM_FUTURE, 2))}
+
+    def build_scene(self, scene: int) -> Payload:
+        samples = self.scene_windows(scene)
         device = next(self.model.parameters()).device
-        desc = "encode planner windows" if self.planes else "planner windows"
-        for scene in tqdm(todo, desc=desc, unit="scene", disable=not progress or not todo):
-            samples = self.scene_windows(scene)
-            xy = self._encode(samples, device) if self.planes else torch.zeros(len(samples), 2, 0, 1, 1)
-            save_checkpoint(
-                {
-                    "xy": xy.half().cpu(),  # [W, 2 (previous, present), C, H, W]
-                    "past_actions": torch.stack([s.past_actions for s in samples]),
-                    "future_actions": torch.stack([s.future_actions for s in samples]),
-                },
-                self.path(scene),
-            )
-        return len(todo)
+        xy = self._encode(samples, device) if self.planes else torch.zeros(len(samples), 2, 0, 1, 1)
+        return {
+            "xy": xy.half().cpu(),  # [W, 2 (previous, present), C, H, W]
+            "past_actions": torch.stack([s.past_actions for s in samples]),
+            "future_actions": torch.stack([s.future_actions for s in samples]),
+        }
 
     def _encode(self, samples: list, device: torch.device) -> Tensor:
         """The previous and present xy planes ``[W, 2, C, H, W]`` of the windows ``samples``."""

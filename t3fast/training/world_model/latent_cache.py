@@ -11,14 +11,14 @@ velocities measured in the last three past frames
 
 The cache folder's name hashes the encoder's weights and the data of the split's first scene,
 so a new autoencoder or a changed world builds a new cache instead of reading stale planes;
-:data:`CACHE_FORMAT` changes with what a window's file holds.
-Building is resumable: windows whose file exists are skipped, and every file is written
-atomically.
+:data:`CACHE_FORMAT` changes with what a window's file holds. Each file is an entry of
+:mod:`t3fast.training.cache_files`: :meth:`AlignedLatentCache.build` checks every file (its
+window, fields, shapes, finite values) and builds the missing and broken ones again, so
+building is resumable and a rerun repairs a damaged cache; every file is written atomically.
 """
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,26 +28,27 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from t3fast.data.classes import FREE, IGNORE
-from t3fast.data.sample import PRESENT
+from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT, WINDOW
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
+from t3fast.errors import DataFormatError
 from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
-from t3fast.training.triplane_cache import encoder_digest
+from t3fast.training.cache_files import (
+    BrokenEntry,
+    Field,
+    Layout,
+    Payload,
+    read_entry,
+    read_or_none,
+    world_digest,
+    write_entry,
+)
+from t3fast.training.triplane_cache import encoder_digest, plane_fields, planes_from, planes_payload
 from t3fast.training.world_model.windows import ego_aligned_window
 
-CACHE_FORMAT = 4  # 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained
-
-
-def world_digest(windows: SyntheticDriving) -> str:
-    """Short hash of what the split's first scene holds (labels, poses, boxes): a change of the
-    synthetic world that changes its data changes it; an edit that does not, does not."""
-    scene = windows.scenes.packed(0)
-    h = hashlib.sha256()
-    for part in (*scene.occ, scene.ego_poses.tobytes(), scene.boxes.tobytes(), scene.labels.tobytes()):
-        h.update(part)
-    return h.hexdigest()[:12]
+# 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained; 5: checked entries
+CACHE_FORMAT = 5
 
 
 @dataclass
@@ -80,42 +81,58 @@ class AlignedLatentCache(Dataset):
             raise ValueError("AlignedLatentCache stores windows as generated: pass flip=False")
         self.windows, self.model = windows, model
         split = windows.scenes.split
-        key = (f"{encoder_digest(model.encoder)}-{world_digest(windows)}-{split}-{windows.scenes.frames_per_scene}f"
-               f"-v{CACHE_FORMAT}")
-        self.root = Path(cache_dir) / f"aligned-{key}"
+        self.key = (f"{encoder_digest(model.encoder)}-{world_digest(windows.scenes)}-{split}"
+                    f"-{windows.scenes.frames_per_scene}f-v{CACHE_FORMAT}")
+        self.root = Path(cache_dir) / f"aligned-{self.key}"
+        h, w = model.encoder.config.plane_shape[:2]
+        self._layout: Layout = {
+            **plane_fields(model.encoder.config, WINDOW),
+            "boxes": Field(torch.float32, (WINDOW, "agents", 7)),
+            "box_valid": Field(torch.bool, (WINDOW, "agents")),
+            "past_actions": Field(torch.float32, (NUM_PAST, 2)),
+            "future_actions": Field(torch.float32, (NUM_FUTURE, 2)),
+            "velocity": Field(torch.float32, (4, h, w)),
+        }
 
     def path(self, index: int) -> Path:
         scene, start = self.windows.locate(index)
         return self.root / f"scene{scene:05d}-start{start:03d}.pt"
 
+    def identity(self, index: int) -> dict:
+        scene, start = self.windows.locate(index)
+        return {"cache": "aligned", "key": self.key, "split": self.windows.scenes.split, "scene": scene,
+                "start": start}
+
     def missing(self) -> list[int]:
-        """Indices of the windows not yet in the cache."""
-        return [i for i in range(len(self.windows)) if not self.path(i).is_file()]
+        """Indices of the windows not in the cache, or whose file is broken (each named in a
+        warning); reads every file."""
+        return [i for i in range(len(self.windows))
+                if read_or_none(self.path(i), self.identity(i), self._layout) is None]
 
     @torch.no_grad()
     def build(self, progress: bool = True) -> int:
-        """Encode every window not yet cached; returns how many were encoded."""
+        """Encode every window that is missing or broken; returns how many were encoded."""
         todo = self.missing()
-        device = next(self.model.parameters()).device
         for index in tqdm(todo, desc="encode aligned windows", unit="window", disable=not progress or not todo):
-            sample = self.windows[index]
-            occ, poses = sample.occ[None].to(device), sample.ego_poses[None].to(device)
-            planes, moved = ego_aligned_window(self.model, occ, poses)
-            recent = moved[:, PRESENT - 2 : PRESENT + 1]
-            recent = recent.masked_fill(recent == IGNORE, FREE)  # what a past frame did not see is free
-            velocity = tracker_velocities(recent, tuple(planes.xy.shape[-2:]))[0]
-            save_checkpoint(
-                {
-                    "planes": tuple(None if p is None else p[0].half().cpu() for p in planes),
-                    "boxes": sample.boxes,
-                    "box_valid": sample.box_valid,
-                    "past_actions": sample.past_actions,
-                    "future_actions": sample.future_actions,
-                    "velocity": velocity.cpu(),
-                },
-                self.path(index),
-            )
+            write_entry(self.path(index), self.identity(index), self._encode(index))
         return len(todo)
+
+    def _encode(self, index: int) -> Payload:
+        device = next(self.model.parameters()).device
+        sample = self.windows[index]
+        occ, poses = sample.occ[None].to(device), sample.ego_poses[None].to(device)
+        planes, moved = ego_aligned_window(self.model, occ, poses)
+        recent = moved[:, PRESENT - 2 : PRESENT + 1]
+        recent = recent.masked_fill(recent == IGNORE, FREE)  # what a past frame did not see is free
+        velocity = tracker_velocities(recent, tuple(planes.xy.shape[-2:]))[0]
+        return {
+            **planes_payload(planes.map(lambda p: p[0].half().cpu())),
+            "boxes": sample.boxes,
+            "box_valid": sample.box_valid,
+            "past_actions": sample.past_actions,
+            "future_actions": sample.future_actions,
+            "velocity": velocity.cpu(),
+        }
 
     def __len__(self) -> int:
         return len(self.windows)
@@ -124,8 +141,11 @@ class AlignedLatentCache(Dataset):
         path = self.path(index)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: window {index} is not cached yet (build() first)")
-        state = load_checkpoint(path)
-        planes = Triplane(*(None if p is None else p.float() for p in state["planes"]))
+        try:
+            state = read_entry(path, self.identity(index), self._layout)
+        except BrokenEntry as exc:  # broken since build() checked it: the next build() encodes it again
+            raise DataFormatError(f"{path}: {exc}; run again to encode it anew") from exc
+        planes = planes_from(state).map(lambda p: p.float())
         return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"],
                              state["velocity"])
 

@@ -29,6 +29,7 @@ from torch.utils.data import Dataset
 from tqdm import tqdm
 
 from t3fast.data.synthetic import SyntheticDriving, SyntheticScenes
+from t3fast.errors import CheckpointError
 from t3fast.io.checkpoint import load_checkpoint, save_checkpoint
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,8 @@ def read_entry(path: Path, identity: dict[str, Any], layout: Layout, check: Chec
         raise BrokenEntry(f"a symbolic link to {path.readlink()}, not a file the cache wrote")
     try:
         state = load_checkpoint(path)
+    except CheckpointError as exc:  # the archive itself is refused; the message starts with the path
+        raise BrokenEntry(str(exc).removeprefix(f"{path}: ")) from exc
     except Exception as exc:  # torch.load fails in many ways on a file it did not write whole
         reason = (str(exc).strip().splitlines() or [""])[0]
         raise BrokenEntry(f"not a readable cache file ({type(exc).__name__}: {reason})") from exc

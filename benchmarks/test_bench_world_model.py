@@ -31,12 +31,11 @@ def test_forecasting_step(benchmark, impl, name, monkeypatch):
     for t in range(5):  # a few cars driving along x, so the tracker has agents to measure
         for lane in range(4):
             occ[0, t, 40 + 3 * t + 30 * lane : 50 + 3 * t + 30 * lane, 60 + 20 * lane : 64 + 20 * lane, 0:4] = CAR
-    poses, actions = torch.zeros(1, 5, 3), torch.zeros(1, 4, 2)
-    past = model.encode_history(occ, poses)
+    pipeline = model.pipeline
+    past = pipeline.encode(occ, torch.zeros(1, 4, 2))  # a standing ego
 
-    def step() -> None:
-        velocity = model.agent_velocity(occ, poses)  # None without a tracker prior
-        model.forecast_from_triplanes(past, actions, present=occ[:, -1], past_poses=poses, velocity=velocity)
+    def step() -> None:  # the agents (the tracker, the box fits), the forecast, the plan, the render
+        pipeline.from_past(past, None, 6, None)
 
     benchmark.pedantic(step, rounds=5, warmup_rounds=1)
     benchmark.extra_info["fps"] = 1 / benchmark.stats.stats.median

@@ -21,7 +21,8 @@ _LAZY = {
     "TriplaneAutoencoder": "t3fast.models",
     "TriplaneDecoder": "t3fast.models",
     "TriplaneEncoder": "t3fast.models",
-    "T3Former": "t3fast.models",
+    "T3Former": "t3fast.models.world_model",
+    "Forecast": "t3fast.models.world_model",
     "load_world_model": "t3fast.pretrained",
     "load_autoencoder": "t3fast.pretrained",
 }

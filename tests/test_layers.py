@@ -13,7 +13,8 @@ LAYERS = [
     {"errors", "paths", "device", "io"},
     {"ops"},
     {"data"},
-    {"agents", "models"},  # the tracker and box fits read the pose geometry of models.ego_motion
+    # the tracker and box fits read the pose geometry of models.ego_motion; T3Former runs the forecast stages
+    {"agents", "models", "forecast"},
     {"pretrained"},
     {"evaluation"},
     {"viz"},

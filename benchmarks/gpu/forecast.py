@@ -52,9 +52,8 @@ def build(size: str, device: torch.device):
     model = T3Former.from_config(ae, world).to(device).eval()
     g = torch.Generator().manual_seed(0)
     occupancy = torch.randint(0, ae.num_classes, (1, world.history, *ae.grid), generator=g, dtype=torch.uint8)
-    past = model.encode_sequence(occupancy.to(device))
     actions = (torch.randn(1, world.past_actions, 2, generator=g) * 0.5).to(device)
-    return model, past, actions
+    return model, model.pipeline.encode(occupancy.to(device), actions), actions
 
 
 @contextlib.contextmanager
@@ -74,8 +73,10 @@ def reference_ops(model):
 def step_function(model, past, actions, mode: str, device: torch.device):
     """A no-argument callable running one forecasting step, and a context to run it in."""
 
+    pipeline = model.pipeline
+
     def step():
-        out = model.forecast_from_triplanes(past, actions)
+        out = pipeline.from_past(past, None, 6, None)
         return out.labels, out.actions
 
     if mode in ("eager", "eager-reference"):

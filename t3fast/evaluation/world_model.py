@@ -40,9 +40,10 @@ from t3fast.evaluation.baselines import (
 )
 from t3fast.evaluation.metrics import OccupancyMetrics
 from t3fast.evaluation.planning import HORIZONS, PlanningMetrics
+from t3fast.forecast.render import DecodeFrames
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.planner import constant_turn_rate
-from t3fast.models.world_model import T3Former, planned_poses, split_past_motion
+from t3fast.models.world_model import T3Former
 
 OCC_KEYS = ("0s", "1s", "2s", "3s", "avg")
 PLAN_KEYS = ("1s", "2s", "3s", "avg")
@@ -70,7 +71,7 @@ class SharedRollout:
     """One forecasting pass per batch, shared by the rows of one model (``t3former``,
     ``_gt_ego``, ``_decoded``): the forecaster does not read the ego's motion, so those rows
     differ only in the poses their frames are rendered from and in keeping the observed
-    world. Holds the last batch's results (rows are scored batch by batch, see
+    world. Holds the last batch's stages' results (rows are scored batch by batch, see
     :func:`evaluate_many`). A planner that reads the route command gets the batch's unless
     ``command`` is False (the rows without it)."""
 
@@ -81,27 +82,20 @@ class SharedRollout:
         self._out: dict = {}
 
     def __call__(self, batch: DrivingBatch) -> dict:
+        """``{"past", "scene", "moves", "plan", "reconstruction"}`` of ``batch``: the stages of
+        the model's forecast (:mod:`t3fast.forecast`) up to the render, and the present frame
+        through the latent."""
         if batch is not self._batch:
-            model = self.model
-            poses, actions = split_past_motion(batch.ego_poses[:, : PRESENT + 1])
-            past = model.encode_history(batch.past_occ, poses)
-            velocity = model.agent_velocity(batch.past_occ, poses)
-            boxes = model.fit_boxes(batch.past_occ, poses)
-            command = batch.command if self.command else None
-            futures, _, planned, motion = model.rollout(past, actions, NUM_FUTURE, velocity=velocity, command=command)
-            present = past.map(lambda p: p[:, -1])
-            frame_poses = planned_poses(planned, actions, poses) if model.ego_aligned else None
-            self._out = dict(futures=futures, motion=motion, actions=planned, poses=frame_poses, present=present,
-                             reconstruction=model.decoder.predict(present), boxes=boxes)
+            pipeline = self.model.pipeline
+            past = pipeline.encode(batch.past_occ, batch.ego_poses[:, : PRESENT + 1])
+            agents = pipeline.agents(past)
+            scene = pipeline.scene(past, agents, NUM_FUTURE)
+            moves = pipeline.motion(past, agents, scene) if pipeline.motion is not None else None
+            plan = pipeline.plan(past, scene, batch.command if self.command else None)
+            self._out = dict(past=past, scene=scene, moves=moves, plan=plan,
+                             reconstruction=self.model.decoder.predict(past.present_planes))
             self._batch = batch
         return self._out
-
-    def decoded(self, batch: DrivingBatch) -> Tensor:
-        """The forecast's own decoded frames at the planned poses (cached per batch)."""
-        out = self(batch)
-        if "decoded" not in out:
-            out["decoded"] = self.model.decode_frames(out["futures"], out["poses"])
-        return out["decoded"]
 
 
 def t3former_method(
@@ -113,20 +107,13 @@ def t3former_method(
     decoded frames only, without the observed static world (``observed_static``). ``shared``:
     a :class:`SharedRollout` of ``model`` the method reads its forecast from."""
     shared = SharedRollout(model) if shared is None else shared
+    render = model.pipeline.render if keep_static else DecodeFrames(model.decoder, model.ego_aligned)
 
     def run(batch: DrivingBatch) -> MethodOutput:
         out = shared(batch)
-        present = batch.past_occ[:, -1] if keep_static else None
-        if gt_ego:
-            poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :]
-            labels = model.render(out["futures"], poses, out["present"], present, motion=out["motion"],
-                                  boxes=out["boxes"])
-        elif keep_static:  # the full decoding when a row already made it, else only the voxels that can change
-            labels = model.render(out["futures"], out["poses"], out["present"], present, out.get("decoded"),
-                                  out["motion"], out["boxes"])
-        else:
-            labels = shared.decoded(batch)
-        return MethodOutput(labels, None if gt_ego else out["actions"], out["reconstruction"])
+        poses = planar_poses(batch.ego_poses, PRESENT)[:, PRESENT + 1 :] if gt_ego else out["plan"].poses
+        labels = render(out["past"], out["scene"], out["moves"], poses)
+        return MethodOutput(labels, None if gt_ego else out["plan"].actions, out["reconstruction"])
 
     return run
 

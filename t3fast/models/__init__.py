@@ -1,4 +1,7 @@
-"""Models of T3Former: the triplane autoencoder (encoder, decoder), the forecaster, the planner."""
+"""The networks of T3Former: the triplane autoencoder (encoder, decoder), the forecasters, the planners, the
+box motion network. :class:`~t3fast.models.world_model.T3Former` holds them and forecasts
+(:mod:`t3fast.forecast`); it is imported from its module, not here, so that the agent machinery
+(:mod:`t3fast.agents`) can read :mod:`t3fast.models.ego_motion` without importing the forecast."""
 
 from t3fast.models.autoencoder import TriplaneAutoencoder
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
@@ -7,13 +10,10 @@ from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
 from t3fast.models.triplane import Triplane
-from t3fast.models.world_model import Forecast, T3Former
 
 __all__ = [
-    "T3Former",
     "AutoencoderConfig",
     "DeltaTriplaneForecaster",
-    "Forecast",
     "MotionPlanner",
     "Triplane",
     "TriplaneAutoencoder",

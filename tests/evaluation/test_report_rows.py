@@ -12,6 +12,7 @@ from t3fast.data.sample import PRESENT, collate_samples
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.report import evaluate_methods, metrics_markdown
 from t3fast.evaluation.world_model import measure_speed
+from t3fast.forecast import encode as encode_module
 from t3fast.pretrained import SHIPPED_DIR, load_world_model
 
 
@@ -44,7 +45,8 @@ def test_speed_is_timed_on_the_whole_forecast_from_past_labels_and_poses(window,
     model = load_world_model("wm-small")
     batch = collate_samples([window[0]])
     calls = []
-    forecast, encode = model.forecast, model.encode_history
+    forecast = model.forecast
+    encode = encode_module.encode_sequence
 
     def counted_forecast(past_occupancy, past_motion, *args, **kwargs):
         calls.append(("forecast", tuple(past_occupancy.shape), tuple(past_motion.shape), args, kwargs))
@@ -55,7 +57,7 @@ def test_speed_is_timed_on_the_whole_forecast_from_past_labels_and_poses(window,
         return encode(*args, **kwargs)
 
     monkeypatch.setattr(model, "forecast", counted_forecast)
-    monkeypatch.setattr(model, "encode_history", counted_encode)
+    monkeypatch.setattr(encode_module, "encode_sequence", counted_encode)
     speed = measure_speed(model, batch, warmup=1, iters=2)
     grid = tuple(batch.past_occ.shape[2:])
     whole = ("forecast", (1, PRESENT + 1, *grid), (1, PRESENT + 1, 4, 4), (), {})

@@ -8,6 +8,8 @@ import math
 import pytest
 import torch
 
+from t3fast.forecast.records import Agents, Past, Scene
+from t3fast.forecast.render import DecodeFrames, KeepObservedStatic, observed_static, present_in_frames
 from t3fast.models.flow_forecaster import MOVING_CELLS, FlowTriplaneForecaster, move_plane
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
@@ -245,21 +247,24 @@ def test_flow_config_refuses_bad_values(bad, message):
 
 def test_world_model_builds_the_forecaster_its_config_names():
     from t3fast.models.config import AutoencoderConfig, WorldModelConfig
-    from t3fast.models.world_model import T3Former
 
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
     world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
                              planner_heads=2, ego_aligned=True)
-    model = T3Former.from_config(ae, world)
+    from t3fast.training.world_model.forwards import FlowMotionModel
+
+    model = FlowMotionModel.from_config(ae, world)
     assert isinstance(model.forecaster, FlowTriplaneForecaster)
     past = Triplane(torch.randn(1, 5, 4, 100, 100), torch.randn(1, 5, 4, 100, 16), torch.randn(1, 5, 4, 100, 16))
     assert model.forecaster.match_radius == world.match_radius == 6
-    futures, displacements, deltas, actions = model(past, torch.zeros(1, 4, 2), motion=True)
+    futures, displacements, deltas, actions = model(past, None)
     assert actions is None  # no route planner inputs
     assert len(futures) == 6 and displacements.shape == (1, 6, 2, 100, 100) and deltas.shape == (1, 6, 4, 100, 100)
-    futures, _, actions, _ = model.rollout(past, torch.zeros(1, 4, 2), 6)
-    assert len(futures) == 6 and actions.shape == (1, 6, 2)
+    pipeline = model.pipeline
+    past_record = Past(torch.zeros(1, 5, 1, 1, 1), torch.zeros(1, 5, 3), torch.zeros(1, 4, 2), past)
+    scene = pipeline.scene(past_record, Agents(), 6)
+    assert len(scene.futures) == 6 and pipeline.plan(past_record, scene, None).actions.shape == (1, 6, 2)
 
 
 def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velocities():
@@ -317,19 +322,17 @@ def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_fram
     for t in range(5):  # a car speeding up along x by 2 grid cells a frame each frame; the ego stands still
         occ[0, t, 60 + t * (t + 1) : 70 + t * (t + 1), 100:104, 0:3] = CAR
     still = torch.zeros(1, 4, 2)
-    poses = torch.zeros(1, 5, 3)
-    velocity = model.agent_velocity(occ, poses)
+    past = model.pipeline.encode(occ, still)
+    velocity = model.pipeline.agents(past).velocity
     assert velocity.shape == (1, 4, 100, 100)
     # last step 8 grid cells = 4 plane cells; the mean of the last two steps 7 grid cells
     assert torch.allclose(velocity[0, :, 42, 51], torch.tensor([4.0, 0.0, 3.5, 0.0]))
     assert model.forecast(occ, still).labels.shape == (1, 6, 200, 200, 16)
-    past = model.encode_history(occ, poses)
     with pytest.raises(ValueError, match="needs the agents' velocities"):
-        model.forecast_from_triplanes(past, still)
-    out = model.forecast_from_triplanes(past, still, velocity=velocity)
-    assert len(out.triplanes) == 6
+        model.pipeline.scene(past, Agents(), 6)
     world.tracker_prior = False
-    assert T3Former.from_config(ae, world).agent_velocity(occ, poses) is None
+    untracked = T3Former.from_config(ae, world).pipeline
+    assert untracked.agents(untracked.encode(occ, still)).velocity is None
 
 
 def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
@@ -353,18 +356,21 @@ def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
         occ[0, t, 60 + 3 * t : 70 + 3 * t, 100:104, 0:3] = CAR
         occ[0, t, 120:124, 70 + 2 * t : 80 + 2 * t, 0:3] = CAR
     poses = torch.stack([torch.tensor([2.0 * (t - 4), 0.0, 0.0]) for t in range(5)])[None]
-    past = model.encode_history(occ, poses)
-    velocity = model.agent_velocity(occ, poses)
-    futures, _ = model.forecaster(past, 6, velocity=velocity)
-    present = past.map(lambda p: p[:, -1])
+    pipeline = model.pipeline
+    past = Past(occ, poses, poses[:, 1:, :2] - poses[:, :-1, :2], pipeline.encode.planes(occ, poses))
+    scene = pipeline.scene(past, pipeline.agents(past), 6)
     frames = torch.stack([torch.tensor([2.0 * (k + 1), 0.3 * k, 0.02 * k]) for k in range(6)])[None]
-    moved_cells = (futures[5].xy != present.xy).any(1).float().mean()
+    moved_cells = (scene.futures[5].xy != past.present_planes.xy).any(1).float().mean()
     assert 0 < moved_cells < 0.2
-    full = model.render(futures, frames, present, occ[:, -1], model.decode_frames(futures, frames))
-    assert torch.equal(model.render(futures, frames, present, occ[:, -1]), full)
-    changed = [f.map(lambda p: p + 0.1) for f in futures]  # every plane changes: every voxel is decoded
-    full = model.render(changed, frames, present, occ[:, -1], model.decode_frames(changed, frames))
-    assert torch.equal(model.render(changed, frames, present, occ[:, -1]), full)
+    changed = Scene([f.map(lambda p: p + 0.1) for f in scene.futures], scene.changes, None)  # every voxel decoded
+    for forecast in (scene, changed):
+        decoded = DecodeFrames(model.decoder, True)(past, forecast, None, frames)
+        moved = present_in_frames(occ[:, -1], frames)
+        present = DecodeFrames(model.decoder, True)(past, Scene([past.present_planes] * 6, [], None), None, frames)
+        agents = torch.tensor(AGENT_CLASSES)
+        reference = torch.where(torch.isin(decoded, agents) | torch.isin(moved, agents), present, decoded)
+        full = observed_static(decoded, reference, moved)  # every voxel decoded
+        assert torch.equal(KeepObservedStatic(model.decoder)(past, forecast, None, frames), full)
 
 
 def _render_agents_model(render_agents: bool = True, agent_boxes: bool = False):

@@ -9,22 +9,26 @@ import pytest
 import torch
 
 from t3fast.errors import UsageError
+from t3fast.forecast.plan import planned_poses
+from t3fast.forecast.render import observed_static, present_in_frames
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
 from t3fast.models.ego_motion import poses_from_displacements
 from t3fast.models.planner import constant_turn_rate
-from t3fast.models.world_model import T3Former, observed_static, planned_poses, present_in_frames
+from t3fast.models.world_model import T3Former
+from t3fast.training.world_model.forwards import RolloutModel
 
 from .test_autoencoder import TINY, random_labels
 
 
-def tiny_world_model() -> T3Former:
+def tiny_world_model(cls: type[T3Former] = T3Former, **layout: bool) -> T3Former:
     torch.manual_seed(0)
     cfg = dataclasses.replace(TINY, grid=(16, 12, 4))
-    return T3Former(
+    return cls(
         TriplaneEncoder(cfg),
         DeltaTriplaneForecaster(channels=cfg.channels, plane_shape=cfg.plane_shape, widths=(8, 8, 16), max_tokens=64),
         MotionPlanner(channels=cfg.channels, widths=(8, 8, 16, 16), d_act=20, heads=4),
         TriplaneDecoder.from_config(cfg),
+        **layout,
     )
 
 
@@ -39,11 +43,11 @@ def test_forecast_shapes_and_types():
 
 
 def test_encoder_stays_frozen_in_training_mode():
-    model = tiny_world_model().train()
+    model = tiny_world_model(RolloutModel).train()
     assert not model.encoder.training
     assert not any(p.requires_grad for p in model.encoder.parameters())
     past = torch.stack([random_labels(1, (16, 12, 4), seed=s) for s in range(5)], dim=1)
-    futures, _, actions, _ = model.rollout(model.encode_sequence(past), torch.randn(1, 4, 2), steps=2)
+    futures, actions = model.rollout(model.encode_sequence(past), torch.randn(1, 4, 2), steps=2)
     loss = actions.square().sum() + sum(p.square().sum() for p in futures[-1])
     loss.backward()
     assert all(p.grad is None for p in model.encoder.parameters())
@@ -51,7 +55,7 @@ def test_encoder_stays_frozen_in_training_mode():
 
 
 def test_training_rollout_from_a_later_step_decodes_points():
-    model = tiny_world_model().train()
+    model = tiny_world_model(RolloutModel).train()
     past = model.encode_sequence(torch.stack([random_labels(2, (16, 12, 4), seed=s) for s in range(5)], dim=1))
     points = [torch.rand(2, 30, 3) * 2 - 1 for _ in range(3)]
     futures, actions, logits = model(past, torch.randn(2, 6, 2), steps=3, first_step=2, points=points)
@@ -72,7 +76,7 @@ def test_forecaster_outputs_are_contiguous_nchw():
 
 
 def test_planning_loss_trains_the_planner_not_the_forecaster():
-    model = tiny_world_model().train()
+    model = tiny_world_model(RolloutModel).train()
     past = model.encode_sequence(torch.stack([random_labels(2, (16, 12, 4), seed=s) for s in range(5)], dim=1))
     _, actions, _ = model(past, torch.randn(2, 4, 2), steps=2)
     actions.square().sum().backward()
@@ -80,10 +84,9 @@ def test_planning_loss_trains_the_planner_not_the_forecaster():
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.planner.parameters())
 
 
-def aligned(model: T3Former) -> T3Former:
+def aligned() -> T3Former:
     """The ego-aligned model with decoded frames only (``observed_static`` is tested on its own)."""
-    model.ego_aligned, model.static_from_present = True, False
-    return model
+    return tiny_world_model(ego_aligned=True, static_from_present=False)
 
 
 def _past(b: int = 1) -> torch.Tensor:
@@ -95,12 +98,12 @@ def test_aligned_forecast_of_a_standing_ego_is_the_own_frame_forecast():
     past = _past(2)
     still = torch.eye(4).repeat(2, 5, 1, 1)
     own = tiny_world_model().eval().forecast(past, still, future_actions=torch.zeros(2, 3, 2))
-    ours = aligned(tiny_world_model()).eval().forecast(past, still, future_actions=torch.zeros(2, 3, 2))
+    ours = aligned().eval().forecast(past, still, future_actions=torch.zeros(2, 3, 2))
     assert torch.equal(own.labels, ours.labels)
 
 
 def test_steered_forecast_moves_the_scene_with_the_given_motion():
-    model = aligned(tiny_world_model()).eval()
+    model = aligned().eval()
     past = _past()
     still = torch.eye(4).repeat(1, 5, 1, 1)
     present = model.decoder.predict(model.encode_sequence(past).map(lambda p: p[:, -1]))  # [1, 16, 12, 4]
@@ -114,7 +117,7 @@ def test_steered_forecast_moves_the_scene_with_the_given_motion():
 
 
 def test_past_displacements_stand_in_for_poses():
-    model = aligned(tiny_world_model()).eval()
+    model = aligned().eval()
     past = _past()
     poses = torch.eye(4).repeat(1, 5, 1, 1)
     poses[0, :, 0, 3] = torch.tensor([-3.2, -2.4, -1.6, -0.8, 0.0])  # straight ahead, 0.8 m per step
@@ -175,7 +178,7 @@ def test_planned_headings_continue_the_observed_yaw_rate():
 
 
 def test_future_poses_give_their_displacements():
-    model = aligned(tiny_world_model()).eval()
+    model = aligned().eval()
     poses = torch.tensor([[[0.8, 0.0, 0.0], [1.6, 0.1, 0.1], [2.4, 0.3, 0.2]]])
     out = model.forecast(_past(), torch.eye(4).repeat(1, 5, 1, 1), future_actions=poses)
     assert torch.equal(out.poses, poses)
@@ -215,6 +218,3 @@ def test_forecast_refuses_a_history_the_model_was_not_trained_on():
             model.forecast(past, torch.zeros(1, frames - 1, 2))
     with pytest.raises(UsageError, match=r"past_motion must be poses .* got shape \[1, 2, 2\]"):
         model.forecast(_past(), torch.zeros(1, 2, 2))  # 5 frames need 4 displacements
-    planes = model.encode_sequence(_past()).map(lambda p: p[:, 2:])
-    with pytest.raises(UsageError, match="past has 3 past frames .* trained on 5"):
-        model.forecast_from_triplanes(planes, torch.zeros(1, 2, 2))

@@ -15,6 +15,7 @@ from t3fast.models.triplane import Triplane
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.delta_loss import delta_rollout_loss
+from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.latent_cache import AlignedBatch
 
 from ..models.test_world_model import tiny_world_model
@@ -89,7 +90,7 @@ def test_the_untrained_forecaster_is_the_copy_forecast_and_learns_below_it():
     the copy forecast's; trained on the moving box it falls well below it, with and without
     pushforward."""
     for pushforward in (False, True):
-        model = tiny_world_model().train()
+        model = tiny_world_model(RolloutModel).train()
         planes = model.encode_sequence(shifting_sequence())
         batch = _batch(planes)
         cfg = WorldLossConfig(rollout_steps=1, pushforward=pushforward)

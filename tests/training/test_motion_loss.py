@@ -19,7 +19,7 @@ class _Fixed(nn.Module):
         super().__init__()
         self.displacement = displacement
 
-    def forward(self, past, past_actions, motion, velocity, plan_from):
+    def forward(self, past, velocity, plan_from):
         futures = [past.map(lambda p: p[:, -1]) for _ in range(6)]
         return futures, self.displacement, None, None
 

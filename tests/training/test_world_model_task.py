@@ -21,6 +21,7 @@ from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import WorldLossConfig
+from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.task import WorldModelTask
 from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window, rollout_frames
@@ -41,7 +42,7 @@ def shifting_sequence(frames: int = 11, grid=(16, 12, 4)) -> torch.Tensor:
 
 def test_tiny_world_model_fits_a_moving_box():
     torch.manual_seed(0)
-    model = tiny_world_model().train()
+    model = tiny_world_model(RolloutModel).train()
     occ = shifting_sequence()
     planes = model.encode_sequence(occ)
     past = torch.zeros(1, 4, 2)
@@ -179,14 +180,14 @@ def test_rollout_steps_out_of_range(world_ckpt):
     batch = SequenceBatch(torch.zeros(1, 11, 16, 12, 4, dtype=torch.uint8), planes, torch.zeros(1, 4, 2),
                           torch.zeros(1, 6, 2), torch.eye(4).repeat(1, 11, 1, 1))
     with pytest.raises(ValueError, match="rollout_steps"):
-        WorldModelTask(cfg).training_step(tiny_world_model(), batch)
+        WorldModelTask(cfg).training_step(tiny_world_model(RolloutModel), batch)
 
 
 def test_pushforward_history_is_the_models_own_forecast():
     """A rollout from step k starts from the model's own k predictions, as at inference: its
     loss equals that of the same step in a full rollout from the present."""
     torch.manual_seed(0)
-    model = tiny_world_model().eval()
+    model = tiny_world_model(RolloutModel).eval()
     occ = shifting_sequence()
     planes = model.encode_sequence(occ)
     past, future = torch.zeros(1, 4, 2), torch.ones(1, 6, 2)
@@ -206,7 +207,7 @@ def test_rollout_trains_under_autocast():
     """Mixed precision (the trainer's AMP; CPU autocast here): the forecaster's low-precision
     Delta meets the float32 planes in the fused delta op, and the loss and every forecaster
     gradient come out finite."""
-    model = tiny_world_model().train()
+    model = tiny_world_model(RolloutModel).train()
     occ = shifting_sequence()
     with torch.no_grad():
         planes = model.encode_sequence(occ)
@@ -227,7 +228,7 @@ def test_aligned_window_keeps_a_static_world_still():
     occ = torch.stack([world[2 * t : 2 * t + 16] for t in range(11)])[None]  # frame t sees cells 2t..2t+15
     poses = torch.eye(4).repeat(1, 11, 1, 1)
     poses[0, :, 0, 3] = 0.8 * torch.arange(11.0)
-    model = tiny_world_model()
+    model = tiny_world_model(RolloutModel)
     planes, moved = ego_aligned_window(model, occ, poses)
     present = occ[0, PRESENT]
     for t in range(11):
@@ -244,7 +245,7 @@ def test_pushforward_planner_continues_from_its_own_plan():
     """Trained on its own rollouts: the planner's step k sees its own plan of steps 0..k-1,
     so the action loss of a rollout from step 2 is that of step 2 of a full rollout."""
     torch.manual_seed(0)
-    model = tiny_world_model().eval()
+    model = tiny_world_model(RolloutModel).eval()
     occ = shifting_sequence()
     planes = model.encode_sequence(occ)
     past, future = torch.tensor([[[0.5, 0.0]] * 4]), torch.tensor([[[1.0, 0.2]] * 6])
@@ -280,7 +281,7 @@ def test_aligned_window_encodes_only_the_frames_a_rollout_reads():
     occ = torch.randint(0, 18, (1, 11, 16, 12, 4), dtype=torch.uint8)
     poses = torch.eye(4).repeat(1, 11, 1, 1)
     poses[0, :, 0, 3] = 0.8 * torch.arange(11.0)
-    model = tiny_world_model()
+    model = tiny_world_model(RolloutModel)
     full, moved = ego_aligned_window(model, occ, poses)
     frames = rollout_frames(first=3, steps=1, pushforward=True)
     assert frames == [0, 1, 2, 3, 4, 8]  # the past and present, and the one target
@@ -302,8 +303,8 @@ def test_rows_of_one_model_share_one_forecast_per_window(world_ckpt, monkeypatch
     separate = {name: evaluate_forecasts(t3former_method(model, **kw), dataset, progress=False)
                 for name, kw in options.items()}
     passes = []
-    rollout = model.rollout
-    monkeypatch.setattr(model, "rollout", lambda *a, **k: passes.append(1) or rollout(*a, **k))
+    forecast = model.forecaster.forward
+    monkeypatch.setattr(model.forecaster, "forward", lambda *a, **k: passes.append(1) or forecast(*a, **k))
     shared = SharedRollout(model)
     together = evaluate_many({name: t3former_method(model, shared=shared, **kw) for name, kw in options.items()},
                              dataset, progress=False)

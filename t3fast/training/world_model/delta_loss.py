@@ -38,7 +38,7 @@ PLANES = ("xy", "xz", "yz")
 def delta_rollout_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig,
                        first: int) -> tuple[Tensor, dict[str, float]]:
     """Loss of ``loss.rollout_steps`` predicted steps of ``batch`` from future step ``first``
-    (see the module doc); the model is a :class:`~t3fast.models.world_model.T3Former` with the
+    (see the module doc); the model is a :class:`~t3fast.training.world_model.forwards.RolloutModel` with the
     Delta forecaster (or DDP around one)."""
     steps = loss.rollout_steps
     if not 0 <= first <= NUM_FUTURE - steps:

@@ -25,7 +25,7 @@ def rollout_history(model: nn.Module, planes: Triplane, past_actions: Tensor, fu
     core = model.module if hasattr(model, "module") else model
     history = planes.map(lambda p: p[:, : PRESENT + 1])
     with torch.no_grad():
-        frames, _, planned, _ = core.rollout(history, past_actions, first)
+        frames, planned = core.rollout(history, past_actions, first)
     for frame in frames:
         history = history.append(frame)
     return history, torch.cat([past_actions, planned], dim=1)

@@ -118,8 +118,7 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
     :mod:`~t3fast.training.world_model.plan_loss`), in the same forward call."""
     planes = batch.planes
     history = planes.map(lambda p: p[:, : PRESENT + 1])
-    futures, displacements, _, planned = model(history, batch.past_actions, motion=True, velocity=batch.velocity,
-                                               plan_from=None if plan is None else plan.inputs)
+    futures, displacements, _, planned = model(history, batch.velocity, None if plan is None else plan.inputs)
     pred = torch.stack([f.xy for f in futures], dim=1)  # [B, S, C, H, W]
     steps = pred.shape[1]
     target = planes.xy[:, PRESENT + 1 : PRESENT + 1 + steps]

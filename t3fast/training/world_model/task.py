@@ -22,6 +22,7 @@ from t3fast.training.configs import Stage2Config
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.triplane_cache import cached_scene_triplanes
 from t3fast.training.world_model.delta_loss import delta_rollout_loss
+from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
 from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatentCache, AlignedWindow, collate_aligned
 from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
@@ -42,11 +43,13 @@ def load_autoencoder_into(model: T3Former, weights: dict[str, Tensor]) -> None:
     model.decoder.load_state_dict({k[len("decoder."):]: v for k, v in weights.items() if k.startswith("decoder.")})
 
 
-def build_world_model(cfg: Stage2Config) -> T3Former:
-    """The untrained world model of ``cfg`` (``cfg.autoencoder`` must be set)."""
+def build_world_model(cfg: Stage2Config) -> RolloutModel | FlowMotionModel:
+    """The untrained world model of ``cfg`` (``cfg.autoencoder`` must be set), with the training
+    forward of its forecaster."""
     if cfg.autoencoder is None:
         raise ValueError("Stage2Config.autoencoder is unset: resolve it from the stage-1 checkpoint first")
-    return T3Former.from_config(cfg.autoencoder, cfg.model)
+    training = FlowMotionModel if cfg.model.forecaster == "flow" else RolloutModel
+    return training.from_config(cfg.autoencoder, cfg.model)
 
 
 class WorldModelTask:

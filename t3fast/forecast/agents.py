@@ -1,0 +1,59 @@
+"""Stage 2: the present's agents as the classical tracker sees them (:mod:`t3fast.agents`).
+
+What a model reads of its agents is fixed by its config: a flow forecaster with a tracker prior
+starts from the tracker's velocities (measured in the last three past frames moved into the
+present frame), and a model that draws its agents as boxes fits each agent's box to its
+columns in every past frame."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from t3fast.agents.boxes import AgentBoxes, fit_agent_boxes
+from t3fast.agents.tracker import tracker_velocities
+from t3fast.forecast.records import Agents, Past
+from t3fast.models.ego_motion import warp_sequence
+
+
+@torch.no_grad()
+def measured_velocities(occupancy: Tensor, poses: Tensor, plane_shape: tuple[int, int]) -> Tensor:
+    """The tracker's agent velocities ``[B, 4, H, W]`` (plane cells per step,
+    :func:`~t3fast.agents.tracker.tracker_velocities`) measured in the last three past frames of
+    ``occupancy`` ``[B, T, X, Y, Z]`` moved into the present frame with ``poses`` ``[B, T, 3]``."""
+    frames = torch.cat([warp_sequence(occupancy[:, -3:-1], poses[:, -3:-1]), occupancy[:, -1:]], dim=1)
+    return tracker_velocities(frames, plane_shape)
+
+
+@torch.no_grad()
+def fitted_boxes(occupancy: Tensor, poses: Tensor) -> tuple[list[AgentBoxes], list[Tensor]]:
+    """Per sample, the boxes of the present's agents fitted to the past frames (labels
+    ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`)
+    and the present's agent map ``[X, Y]`` (0 off the agents, else 1 + the agent's index)."""
+    boxes, ids = [], []
+    for n in range(occupancy.shape[0]):
+        now, fit = fit_agent_boxes(occupancy[n], poses[n])
+        boxes.append(fit)
+        ids.append(now["ids"])
+    return boxes, ids
+
+
+class FindAgents:
+    """:class:`Past` -> :class:`Agents`.
+
+    Args:
+        plane_shape: ``(H, W)`` of the xy plane the velocities are pooled on.
+        velocities: measure the tracker's velocities (a forecaster with a tracker prior).
+        boxes: fit the agents' boxes (a model that draws them).
+    """
+
+    def __init__(self, plane_shape: tuple[int, int], velocities: bool, boxes: bool):
+        self.plane_shape, self.velocities, self.boxes = plane_shape, velocities, boxes
+
+    def __call__(self, past: Past) -> Agents:
+        agents = Agents()
+        if self.velocities:
+            agents.velocity = measured_velocities(past.occupancy, past.poses, self.plane_shape)
+        if self.boxes:
+            agents.boxes, agents.ids = fitted_boxes(past.occupancy, past.poses)
+        return agents

@@ -25,7 +25,7 @@ def add_export_command(sub: argparse._SubParsersAction) -> None:
 
 
 def model_options(options: list[str]) -> Callable[[dict[str, Any], str | None], dict[str, Any]]:
-    """A config edit for :func:`~t3fast.io.checkpoint.export_weights`: a world model's config
+    """A config edit for :func:`~t3fast.pretrained.export_weights`: a world model's config
     with the ``"key=value"`` settings of its model section replaced, validated by
     :class:`~t3fast.models.config.WorldModelConfig` (:class:`~t3fast.errors.ConfigError` for an
     invalid one, or for an autoencoder checkpoint)."""
@@ -59,7 +59,7 @@ def writable_file(path: Path) -> Path:
 
 def _export(args: argparse.Namespace) -> int:
     from t3fast.errors import UsageError
-    from t3fast.io.checkpoint import export_weights
+    from t3fast.pretrained import export_weights
 
     if args.out.is_dir():
         raise UsageError(f"{args.out} is a folder; it names the file to write")

@@ -218,60 +218,6 @@ def load_readable_checkpoint(path: str | Path) -> Any:
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(exc).__name__}: {reason})") from exc
 
 
-def export_weights(src: str | Path, dst: str | Path, dtype: torch.dtype = torch.float16,
-                   edit_config: Callable[[dict[str, Any], str | None], dict[str, Any]] | None = None) -> int:
-    """Keep only what inference needs from a training checkpoint (model weights in ``dtype``,
-    config, step), e.g. to ship it; returns the file size in bytes. Loading casts back to the
-    model's dtype. ``src`` must be a stage-1 or stage-2 checkpoint (:func:`read_checkpoint`
-    says what it is otherwise), read once. ``edit_config(config, kind)``: the config to store
-    instead of the run's (``kind``: :func:`checkpoint_kind`), e.g. an inference setting.
-
-    ``dst`` is replaced only by a file that loads: the written file is loaded as
-    :func:`t3fast.load_world_model` (or :func:`t3fast.load_autoencoder`) loads it before it is
-    renamed over ``dst``; a weight beyond the range of ``dtype`` is refused
-    (:class:`~t3fast.errors.UsageError`) rather than stored as an infinity.
-    """
-    state = read_checkpoint(src, (AUTOENCODER, WORLD_MODEL))
-    kind = checkpoint_kind(state)
-    weights = {key: cast_weight(value, dtype, key, src) for key, value in state["model"].items()}
-    config = state.get("config", {})
-    if edit_config is not None:
-        config = edit_config(config, kind)
-    exported = {"model": weights, "config": config, "step": state.get("step")}
-    save_checkpoint(exported, dst, check=lambda written: _check_loads(written, dst, kind))
-    return Path(dst).stat().st_size
-
-
-def cast_weight(value: torch.Tensor, dtype: torch.dtype, key: str, path: str | Path) -> torch.Tensor:
-    """A floating-point ``value`` (finite, :func:`read_checkpoint`) in ``dtype``; one with values
-    beyond the range of ``dtype`` (which the cast would make infinite) is refused with
-    :class:`~t3fast.errors.UsageError` naming the weight and its largest magnitude."""
-    if not value.is_floating_point():
-        return value
-    cast = value.to(dtype)
-    if not bool(torch.isfinite(cast).all()):
-        peak = float(value.abs().max())
-        largest = torch.finfo(dtype).max
-        wider = ": export it as float32 (--dtype float32)" if largest < torch.finfo(torch.float32).max else ""
-        name = str(dtype).removeprefix("torch.")
-        raise UsageError(f"{path}: weight {key!r} reaches {peak:g} in magnitude, beyond {name}'s {largest:g}{wider}")
-    return cast
-
-
-def _check_loads(written: Path, dst: str | Path, kind: str | None) -> None:
-    """Load ``written`` (the export on its way to ``dst``) as users load it; a
-    :class:`~t3fast.errors.T3fastError` it raises is raised again naming ``dst``."""
-    from t3fast.errors import T3fastError
-    from t3fast.pretrained import load_autoencoder, load_world_model
-
-    load = load_world_model if kind == WORLD_MODEL else load_autoencoder
-    try:
-        load(written)
-    except T3fastError as exc:
-        reason = str(exc).removeprefix(f"{written}: ")
-        raise type(exc)(f"{dst}: not written, the exported model would not load: {reason}") from None
-
-
 def _fsync_dir(directory: Path) -> None:
     """Make the rename itself durable; not every platform can open a directory."""
     try:

@@ -67,7 +67,8 @@ def test_a_replaced_checkpoint_keeps_its_permissions(tmp_path: Path) -> None:
 def test_weights_that_are_not_tensors_are_refused_on_reading(tmp_path: Path) -> None:
     """Every reader (loading a model, ``t3fast export``) may rely on tensors named by strings."""
     from t3fast.errors import CheckpointError
-    from t3fast.io.checkpoint import AUTOENCODER, export_weights, read_checkpoint
+    from t3fast.io.checkpoint import AUTOENCODER, read_checkpoint
+    from t3fast.pretrained import export_weights
 
     config = {"task": {"model": {}, "decoder_backend": "fused"}}
     path = tmp_path / "ae.pt"

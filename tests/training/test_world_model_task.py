@@ -16,10 +16,10 @@ from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
-from t3fast.io.checkpoint import export_weights, load_checkpoint
+from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
-from t3fast.pretrained import load_world_model
+from t3fast.pretrained import export_weights, load_world_model
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.loss import rollout_loss

@@ -14,23 +14,17 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from t3fast.agents.box_kinematics import (  # noqa: F401 (importable from here while callers move)
-    BOX_CLASSES,
+from t3fast.agents.box_kinematics import (
     CONTEXT_CHANNELS,
-    CONTEXT_GROUPS,
     CROP,
-    STILL_STEP,
     agent_headings,
     context_map,
-    corrected_motion,
     crop_context,
-    ego_step,
     future_poses,
     kinematic_features,
     kinematics,
     mirror_kinematics,
     mirror_views,
-    rotate,
 )
 from t3fast.agents.boxes import AgentBoxes
 

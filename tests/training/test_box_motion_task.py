@@ -9,12 +9,13 @@ import json
 import pytest
 import torch
 
+from t3fast.agents.box_kinematics import BOX_CLASSES, STILL_STEP, rotate
 from t3fast.commands.main import main
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.io.checkpoint import load_checkpoint
-from t3fast.models.box_motion import BOX_CLASSES, STILL_STEP, BoxMotionNet, rotate
+from t3fast.models.box_motion import BoxMotionNet
 from t3fast.models.ego_motion import planar_poses
 from t3fast.pretrained import load_world_model
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples, window_record

@@ -1,7 +1,7 @@
 """What the box motion network trains on: per window, the scene's context map and, per agent
 drawn as a fitted box, its kinematics and its true future motion.
 
-The boxes are fitted once per window (:func:`~t3fast.models.agent_boxes.fit_agent_boxes`, the
+The boxes are fitted once per window (:func:`~t3fast.agents.boxes.fit_agent_boxes`, the
 costly part: ~0.5 s a window) and stored with the window's :func:`context_map` (the groups as
 bits, the velocities in float16), one entry file per scene of the train split
 (:class:`~t3fast.training.cache_files.SceneFiles`: checked when read, fitted again when broken,
@@ -23,16 +23,16 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
+from t3fast.agents import box_kinematics, boxes, tracker
+from t3fast.agents.box_kinematics import agent_headings, context_map, crop_context, ego_step, kinematics
+from t3fast.agents.boxes import fit_agent_boxes
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample, collate_samples
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.models import agent_boxes, box_motion
-from t3fast.models.agent_boxes import fit_agent_boxes
-from t3fast.models.box_motion import agent_headings, context_map, crop_context, ego_step, kinematics
 from t3fast.models.ego_motion import planar_poses, wrap_angle
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 
 MATCH_METRES = 1.0
-GROUPS = len(box_motion.CONTEXT_GROUPS)
+GROUPS = len(box_kinematics.CONTEXT_GROUPS)
 BOX_CACHE_FORMAT = 2  # 2: one checked entry file per scene
 #: a record's fields with one row per agent, in the order :class:`BoxMotionSamples` keeps them
 AGENT_FIELDS = ("centre", "heading", "velocity", "features", "displacement", "turn", "valid")
@@ -42,7 +42,7 @@ def cache_key(windows: SyntheticDriving) -> str:
     """Changes with the windows (the world's data, the split, the frames per scene, the stride)
     and with the code of the fit and the features."""
     code = hashlib.sha256()
-    for module in (agent_boxes, box_motion):
+    for module in (tracker, boxes, box_kinematics):
         code.update(inspect.getsource(module).encode())
     scenes = windows.scenes
     return (f"{world_digest(scenes)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}"
@@ -141,7 +141,7 @@ class BoxCache(SceneFiles):
 
 class BoxMotionSamples(Dataset):
     """The agents of cached windows, flat, each with its view of its window
-    (:func:`~t3fast.models.box_motion.crop_context`, float16)."""
+    (:func:`~t3fast.agents.box_kinematics.crop_context`, float16)."""
 
     def __init__(self, records: list[dict[str, Tensor]]):
         views = []

@@ -18,12 +18,13 @@ import copy
 import torch
 from torch import Tensor, nn
 
+from t3fast.agents.box_kinematics import corrected_motion, mirror_kinematics, mirror_views, rotate
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.data.synthetic.dataset import SPLIT_SIZE
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
-from t3fast.models.box_motion import BoxMotionNet, corrected_motion, mirror_kinematics, mirror_views, rotate
+from t3fast.models.box_motion import BoxMotionNet
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors

@@ -7,7 +7,7 @@ encoded once, stored in float16 (one file per window, about 2.3 MB with the smal
 autoencoder), and read by every later run and ablation. A window's file also holds what the
 motion targets are made from (the agents' boxes and the ego's displacements) and the agents'
 velocities measured in the last three past frames
-(:func:`~t3fast.models.agent_velocity.tracker_velocities`, the tracker prior).
+(:func:`~t3fast.agents.tracker.tracker_velocities`, the tracker prior).
 
 The cache folder's name hashes the encoder's weights and the data of the split's first scene,
 so a new autoencoder or a changed world builds a new cache instead of reading stale planes;
@@ -27,11 +27,11 @@ from torch import Tensor
 from torch.utils.data import Dataset
 from tqdm import tqdm
 
+from t3fast.agents.tracker import tracker_velocities
 from t3fast.data.classes import FREE, IGNORE
 from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT, WINDOW
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import DataFormatError
-from t3fast.models.agent_velocity import tracker_velocities
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import (

@@ -168,30 +168,15 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
   const int64_t total = planes.batch * query.num_points;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
 
-  // Padding points of the last tile repeat the last point; their results are not written.
-  for (int p = threadIdx.x; p < P; p += kThreads) {
-    const int64_t g = min(first + p, total - 1);
-    A x, y, z;
-    batch_of[p] = query_point(query, g, x, y, z);
-    coord[3 * p] = x;
-    coord[3 * p + 1] = y;
-    coord[3 * p + 2] = z;
-  }
+  stage_points(query, first, total, P, kThreads, batch_of, coord);
   __syncthreads();
 
-  const int channels = planes.channels;
   const int in0 = mlp.width[0];
   const int in0_pad = round_up(in0, kChunk);
   for (int idx = threadIdx.x; idx < P * in0_pad; idx += kThreads) {
     const int p = idx % P;
     const int j = idx / P;
-    const A x = coord[3 * p], y = coord[3 * p + 1], z = coord[3 * p + 2];
-    A v = A(0);
-    if (j < channels) {
-      v = plane_feature(planes, batch_of[p], j, x, y, z);
-    } else if (j < in0) {
-      v = pe_value(j - channels, x, y, z);
-    }
+    const A v = mlp_input(planes, batch_of[p], j, in0, coord[3 * p], coord[3 * p + 1], coord[3 * p + 2]);
     act[j * kRow + p] = v;
   }
   // (mlp_layer starts with a barrier)

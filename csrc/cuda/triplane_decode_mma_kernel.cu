@@ -237,31 +237,16 @@ __device__ __forceinline__ void decode_tile(const Triplane<T>& planes, const Que
   const int64_t total = planes.batch * query.num_points;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
 
-  // Padding points of the last tile repeat the last point; their results are not written.
-  for (int p = threadIdx.x; p < P; p += kThreads) {
-    const int64_t g = min(first + p, total - 1);
-    float x, y, z;
-    batch_of[p] = query_point(query, g, x, y, z);
-    coord[3 * p] = x;
-    coord[3 * p + 1] = y;
-    coord[3 * p + 2] = z;
-  }
+  stage_points(query, first, total, P, kThreads, batch_of, coord);
   __syncthreads();
 
   // Consecutive threads take consecutive points of one feature: neighbouring plane taps.
-  const int channels = planes.channels;
   const int in0 = mlp.width[0];
   const int in0_pad = round_up(in0, kTile);
   for (int idx = threadIdx.x; idx < P * in0_pad; idx += kThreads) {
     const int p = idx % P;
     const int j = idx / P;
-    const float x = coord[3 * p], y = coord[3 * p + 1], z = coord[3 * p + 2];
-    float v = 0.f;
-    if (j < channels) {
-      v = plane_feature(planes, batch_of[p], j, x, y, z);
-    } else if (j < in0) {
-      v = pe_value(j - channels, x, y, z);
-    }
+    const float v = mlp_input(planes, batch_of[p], j, in0, coord[3 * p], coord[3 * p + 1], coord[3 * p + 2]);
     act[p * lay.row + j] = MmaOps<Mma>::store(v);
   }
   __syncthreads();

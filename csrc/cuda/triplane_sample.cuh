@@ -103,5 +103,29 @@ __device__ __forceinline__ A pe_value(int j, A x, A y, A z) {
   return r < 3 ? sin_acc(q) : cos_acc(q);
 }
 
+// A tile's points ``first .. first + P`` (padding repeats the last of ``total``; its results
+// are not written) into shared memory: their batch and their coordinates ``[P][3]``, the
+// block's threads striding by ``threads``.
+template <typename T, typename A>
+__device__ __forceinline__ void stage_points(const Query<T>& q, int64_t first, int64_t total, int P,
+                                             int threads, int64_t* batch_of, A* coord) {
+  for (int p = threadIdx.x; p < P; p += threads) {
+    A x, y, z;
+    batch_of[p] = query_point(q, min(first + p, total - 1), x, y, z);
+    coord[3 * p] = x;
+    coord[3 * p + 1] = y;
+    coord[3 * p + 2] = z;
+  }
+}
+
+// Feature ``j`` of the MLP's input at a point: a plane channel, then the positional encoding,
+// then zero up to the padded width ``in0`` onwards.
+template <typename T, typename A>
+__device__ __forceinline__ A mlp_input(const Triplane<T>& t, int64_t b, int j, int in0, A x, A y, A z) {
+  if (j < t.channels) return plane_feature(t, b, j, x, y, z);
+  if (j < in0) return pe_value(j - t.channels, x, y, z);
+  return A(0);
+}
+
 }  // namespace cuda
 }  // namespace t3fast

@@ -118,3 +118,26 @@ def test_the_command_line_reports_a_bad_override_in_one_line(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["t3fast train: override 'wm-train.steps=2': expected STAGE:KEY=VALUE with STAGE one of "
                    "wm, plan, motion, box"]
+
+
+@pytest.mark.parametrize("state", ["new", "resume", "restart"])
+def test_every_stage_command_parses_with_the_real_parser(tmp_path, monkeypatch, state):
+    """The flags go where argparse takes them (a ``--resume`` after a stage's KEY=VALUE settings
+    is refused by the real parser), and the user's overrides come after the stage's own."""
+    from t3fast.commands.main import build_parser
+
+    parsed: list[argparse.Namespace] = []
+
+    def parse_only(argv: list[str]) -> argparse.Namespace:
+        args = real.parse_args(argv)
+        parsed.append(args)
+        return argparse.Namespace(func=lambda _: 0)
+
+    real = build_parser()
+    monkeypatch.setattr("t3fast.commands.main.build_parser", lambda: argparse.Namespace(parse_args=parse_only))
+    monkeypatch.setattr(recipe, "stage_state", lambda stage, folder: state if stage.writes == "run" else "new")
+    assert recipe._run_recipe(_recipe_args(["--recipe", "wm-small", "--out", str(tmp_path), "wm:train.steps=3"])) == 0
+    assert [a.command for a in parsed] == ["train-wm", "train-planner", "train-motion", "train-box-motion", "export"]
+    for args in parsed[:-1]:
+        assert (args.resume, args.overwrite) == (state == "resume", state == "restart")
+    assert parsed[0].overrides[-2:] == [f"train.out_dir={tmp_path / 'wm'}", "train.steps=3"]

@@ -26,12 +26,13 @@ class Stage:
     writes: str = "run"
 
 
-#: the shipped ``wm-small``: stage 2 from the shipped autoencoder (the planner trained alongside
-#: is replaced by its own run), then the route planner, the motion head and the box motion
-#: network, each trained on its own on the previous run's model, then the export
+#: the shipped ``wm-small``: stage 2 from the shipped autoencoder for the 800 steps its run trained
+#: (the preset's 2,000 were stopped at 769, validation falling; the planner trained alongside is
+#: replaced by its own run), then the route planner, the motion head and the box motion network,
+#: each trained on its own on the previous run's model, then the export
 RECIPES: dict[str, tuple[Stage, ...]] = {
     "wm-small": (
-        Stage("wm", ("train-wm", "--config", "small", "--ae", "wm-small")),
+        Stage("wm", ("train-wm", "--config", "small", "--ae", "wm-small", "train.steps=800")),
         Stage("plan", ("train-planner", "--config", "small", "--wm", "{wm}/best.pt")),
         Stage("motion", ("train-motion", "--config", "small", "--wm", "{plan}/best.pt")),
         Stage("box", ("train-box-motion", "--config", "small", "--wm", "{motion}/best.pt")),
@@ -96,8 +97,9 @@ def _run_recipe(args: argparse.Namespace) -> int:
         if state == "done":
             continue
         argv = list(stage.argv)
-        if stage.writes == "run":
-            argv += {"resume": ["--resume"], "restart": ["--overwrite"], "new": []}[state]
+        if stage.writes == "run":  # the flag before the stage's KEY=VALUE settings, which the user's follow
+            flag = {"resume": ["--resume"], "restart": ["--overwrite"], "new": []}[state]
+            argv[1:1] = flag
             argv += [f"train.out_dir={folder}", *overrides[stage.name]]
         parsed = parser.parse_args(argv)
         code = parsed.func(parsed)

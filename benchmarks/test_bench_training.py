@@ -13,12 +13,13 @@ import torch
 
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving, SyntheticFrames
+from t3fast.forecast.agents import measured_velocities
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.triplane import Triplane
-from t3fast.models.world_model import T3Former
 from t3fast.presets import autoencoder_size, preset, world_model_size
 from t3fast.training.autoencoder.task import AutoencoderTask
 from t3fast.training.configs import WorldLossConfig
+from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
 from t3fast.training.world_model.latent_cache import AlignedWindow, collate_aligned
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
@@ -55,7 +56,7 @@ def test_stage2_training_step(benchmark, encode):
     benchmark.group = "stage-2 training step (small, batch 1)"
     torch.manual_seed(0)
     world = dataclasses.replace(world_model_size("small"), ego_aligned=True)
-    model = T3Former.from_config(autoencoder_size("small"), world).train()
+    model = RolloutModel.from_config(autoencoder_size("small"), world).train()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     batch = collate_windows([SyntheticDriving("val", 1, 20, stride=9)[0]])
     loss_cfg = WorldLossConfig(rollout_steps=1)
@@ -78,12 +79,12 @@ def _flow_step(batch_size: int):
     motion loss, backward, AdamW. The windows are encoded once, outside the timed step, as the
     cache does."""
     cfg = preset("wm-small")
-    model = T3Former.from_config(autoencoder_size("small"), cfg.model).train()
+    model = FlowMotionModel.from_config(autoencoder_size("small"), cfg.model).train()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     sample = SyntheticDriving("val", 1, 20, stride=9)[0]
     planes, _ = ego_aligned_window(model, sample.occ[None], sample.ego_poses[None])
     poses = planar_poses(sample.ego_poses[None, : PRESENT + 1], PRESENT)
-    velocity = model.agent_velocity(sample.occ[None, : PRESENT + 1], poses)
+    velocity = measured_velocities(sample.occ[None, : PRESENT + 1], poses, model.encoder.config.plane_shape[:2])
     window = AlignedWindow(Triplane(*(p[0] for p in planes)), sample.boxes, sample.box_valid, sample.past_actions,
                            sample.future_actions, velocity[0])
     batch = collate_aligned([window] * batch_size)
@@ -101,7 +102,7 @@ def _delta_step():
     """The step the ``small-delta`` preset trains with (the papers' forecaster, batch 1): the
     window moved into the present frame and encoded in the step, a one-step pushforward rollout."""
     cfg = preset("wm-small-delta")
-    model = T3Former.from_config(autoencoder_size("small"), cfg.model).train()
+    model = RolloutModel.from_config(autoencoder_size("small"), cfg.model).train()
     optimizer = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     batch = collate_windows([SyntheticDriving("val", 1, 20, stride=9)[0]])
     first = 3

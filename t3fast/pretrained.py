@@ -39,6 +39,7 @@ MAX_PARAMETERS = 2_000_000_000
 
 M = TypeVar("M", bound=nn.Module)
 C = TypeVar("C")
+W = TypeVar("W", bound=T3Former)
 
 
 def shipped_names() -> list[str]:
@@ -77,12 +78,13 @@ def load_autoencoder(name_or_path: str | Path, device: torch.device | str = "cpu
     return autoencoder_from_checkpoint(read_checkpoint(path, (AUTOENCODER, WORLD_MODEL)), path).to(device).eval()
 
 
-def world_model_from_checkpoint(state: dict[str, Any], path: str | Path) -> T3Former:
+def world_model_from_checkpoint(state: dict[str, Any], path: str | Path, model_class: type[W] = T3Former) -> W:
     """The :class:`T3Former` (on the CPU) of a stage-2 checkpoint ``state`` read from ``path``
-    (:func:`~t3fast.io.checkpoint.read_checkpoint`), checked as the module says."""
+    (:func:`~t3fast.io.checkpoint.read_checkpoint`), checked as the module says; a training task
+    passes its ``model_class``, a :class:`T3Former` whose ``forward`` is the part it trains."""
     autoencoder = checkpoint_config(AutoencoderConfig, state, path, "autoencoder")
     world = checkpoint_config(WorldModelConfig, state, path, "model")
-    return build_checked(lambda: T3Former.from_config(autoencoder, world), state["model"], path,
+    return build_checked(lambda: model_class.from_config(autoencoder, world), state["model"], path,
                          lambda key: "task.autoencoder" if key.split(".", 1)[0] in ("encoder", "decoder")
                          else "task.model")
 

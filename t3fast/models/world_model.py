@@ -7,14 +7,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from t3fast.agents.box_kinematics import ego_step
-from t3fast.agents.boxes import AgentBoxes
 from t3fast.errors import UsageError
-from t3fast.forecast.agents import fitted_boxes, measured_velocities
 from t3fast.forecast.encode import encode_sequence
 from t3fast.forecast.pipeline import ForecastPipeline, Layout, build_pipeline, check_layout
 from t3fast.forecast.records import Forecast
-from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
+from t3fast.models.box_motion import BoxMotionNet
 from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
@@ -165,48 +162,3 @@ class T3Former(nn.Module):
             check_future_actions(future_actions, batch)
             limit = supported_steps(self.forecaster, self.planner, past_actions, False)
             check_horizon(future_actions.shape[1], limit, trained, "future_actions")
-
-    # ---- kept while the training caches and tasks of the motion head, route planner and box
-    # ---- motion network move to the stages and to training modules of their own
-    @torch.no_grad()
-    def encode_history(self, occupancy: Tensor, poses: Tensor) -> Triplane:
-        """:meth:`~t3fast.forecast.encode.EncodePast.planes` of this model."""
-        return self.pipeline.encode.planes(occupancy, poses)
-
-    @torch.no_grad()
-    def agent_velocity(self, occupancy: Tensor, poses: Tensor) -> Tensor | None:
-        """The tracker's velocities a forecaster with a tracker prior reads, else None."""
-        agents = self.pipeline.agents
-        return measured_velocities(occupancy, poses, agents.plane_shape) if agents.velocities else None
-
-    @torch.no_grad()
-    def fit_boxes(self, occupancy: Tensor, poses: Tensor) -> list[AgentBoxes] | None:
-        """Per sample the fitted boxes, placed by the box motion network where there is one."""
-        if not self.layout.agent_boxes:
-            return None
-        boxes, ids = fitted_boxes(occupancy, poses)
-        if self.box_motion is not None:
-            for n, fit in enumerate(boxes):
-                fit.future = predict_box_poses(self.box_motion, occupancy[n, -1], fit, ids[n],
-                                               ego_step(poses[n].cpu()))
-        return boxes
-
-    def forward(self, past: None, past_actions: None, plan_from: tuple[Tensor, ...] | None = None,
-                motion_from: tuple[Tensor, Tensor, Tensor] | None = None,
-                boxes_from: tuple[Tensor, Tensor] | None = None) -> Tensor | tuple[Tensor, Tensor]:
-        """The training forward of one part: the box motion network's corrections for
-        ``boxes_from``, the motion head's displacements for ``motion_from``, else the route
-        planner's candidates for ``plan_from``."""
-        if boxes_from is not None:
-            if self.box_motion is None:
-                raise ValueError("boxes_from is the box motion network's input: it needs world_config.box_motion")
-            return self.box_motion(*boxes_from)
-        if motion_from is not None:
-            if not getattr(self.forecaster, "tracker_prior", False):
-                raise ValueError("motion_from is the motion head's input: it needs the flow forecaster with "
-                                 "world_config.tracker_prior = True")
-            return self.forecaster.tracked_motion(*motion_from)
-        if plan_from is None or not self.reads_command:
-            raise ValueError("the forward pass is the route planner's alone: it needs plan_from and "
-                             "world_config.planner = 'route'")
-        return self.planner.candidates(*plan_from)

@@ -9,13 +9,14 @@ import json
 import pytest
 import torch
 
-from t3fast.agents.box_kinematics import BOX_CLASSES, STILL_STEP, rotate
+from t3fast.agents.box_kinematics import BOX_CLASSES, STILL_STEP, ego_step, rotate
 from t3fast.commands.main import main
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
+from t3fast.forecast.agents import fitted_boxes
 from t3fast.io.checkpoint import load_checkpoint
-from t3fast.models.box_motion import BoxMotionNet
+from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 from t3fast.models.ego_motion import planar_poses
 from t3fast.pretrained import load_world_model
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples, window_record
@@ -48,7 +49,9 @@ def test_a_record_holds_what_inference_fits_and_the_true_future(records, world_c
     model.box_motion = BoxMotionNet()
     sample = windows[2]
     poses = planar_poses(sample.ego_poses[None], PRESENT)[:, : PRESENT + 1]
-    fit = model.fit_boxes(sample.occ[None, : PRESENT + 1], poses)[0]
+    boxes, ids = fitted_boxes(sample.occ[None, : PRESENT + 1], poses)
+    fit = boxes[0]
+    fit.future = predict_box_poses(model.box_motion, sample.occ[PRESENT], fit, ids[0], ego_step(poses[0]))
     record = recs[2]
     assert record["centre"].shape[0] > 0, "the window should hold agents drawn as boxes"
     for i in range(record["centre"].shape[0]):
@@ -121,7 +124,7 @@ def test_the_network_learns_the_agents_it_sees(records, world_ckpt):
         opt.step()
     assert values["tracker"] > 0
     with torch.no_grad():
-        correction = model(None, None, boxes_from=(batch["views"].float(), batch["features"]))
+        correction = model(batch["views"].float(), batch["features"])
     assert class_balanced_mean(agent_errors(correction, batch), batch) < 0.7 * tracker
     assert all(p.grad is None for n, p in model.named_parameters() if not n.startswith("box_motion."))
 
@@ -164,8 +167,6 @@ def test_box_motion_needs_agent_boxes(world_ckpt):
     with pytest.raises(ValueError, match="box_motion moves the fitted boxes agent_boxes draws"):
         T3Former(model.encoder, model.forecaster, model.planner, model.decoder, ego_aligned=True,
                  render_agents=True, box_motion=BoxMotionNet())
-    with pytest.raises(ValueError, match="boxes_from is the box motion network's input"):
-        model(None, None, boxes_from=(torch.zeros(1, 7, 64, 32), torch.zeros(1, 25)))
 
 
 def test_a_rotation_turns_counter_clockwise():

@@ -13,6 +13,7 @@ from t3fast.commands.main import main
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
+from t3fast.forecast.agents import measured_velocities
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.flow_forecaster import tracker_motion
@@ -20,7 +21,7 @@ from t3fast.models.triplane import Triplane
 from t3fast.pretrained import load_world_model
 from t3fast.training.configs import MotionConfig
 from t3fast.training.motion.motion_cache import MotionCache, MotionWindows
-from t3fast.training.motion.task import MotionTask, mirror_left_right, motion_head_loss
+from t3fast.training.motion.task import MotionHeadTraining, MotionTask, mirror_left_right, motion_head_loss
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, agent_targets, flow_terms
 from t3fast.training.world_model.motion_targets import agent_motion
 
@@ -45,9 +46,9 @@ def test_the_cache_holds_the_velocities_inference_measures_and_the_losses_target
     for i in range(len(windows)):
         sample = windows[i]
         poses = planar_poses(sample.ego_poses[None], PRESENT)[:, : PRESENT + 1]
-        velocity = model.agent_velocity(sample.occ[None, : PRESENT + 1], poses)
+        velocity = measured_velocities(sample.occ[None, : PRESENT + 1], poses, model.encoder.config.plane_shape[:2])
         torch.testing.assert_close(batch.velocity[i : i + 1], velocity)
-        planes = model.encode_history(sample.occ[None, : PRESENT + 1], poses).xy[0]
+        planes = model.pipeline.encode.planes(sample.occ[None, : PRESENT + 1], poses).xy[0]
         torch.testing.assert_close(batch.present[i], planes[-1], atol=2e-3, rtol=0)
         target, moving, static, _, covered, owner = agent_motion(sample.boxes[None], sample.box_valid[None])
         expected = agent_targets(target, moving, static, covered, owner, velocity)
@@ -63,7 +64,7 @@ def test_the_heads_forward_is_the_forecasters_motion(cached):
     model, _, cache = cached
     batch = cache.all()
     torch.nn.init.normal_(model.forecaster.motion_head.head[-1].weight, std=0.1)  # a head that corrects
-    alone = model(None, None, motion_from=(batch.velocity, batch.present, batch.previous))
+    alone = MotionHeadTraining.forward(model, batch.velocity, batch.present, batch.previous)
     past = Triplane(torch.stack([batch.previous, batch.previous, batch.previous, batch.previous, batch.present], 1),
                     None, None)
     _, displacements, _ = model.forecaster.predict(past, batch.velocity)
@@ -126,7 +127,7 @@ def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
         opt.zero_grad()
         loss.backward()
         opt.step()
-    final = sum(flow_terms(model(None, None, motion_from=(batch.velocity, batch.present, batch.previous)),
+    final = sum(flow_terms(model(batch.velocity, batch.present, batch.previous),
                            batch.targets))
     assert final < 0.8 * tracker
     assert all(p.grad is None for n, p in model.named_parameters() if "motion_head" not in n)
@@ -160,11 +161,11 @@ def test_train_motion_refuses_a_world_model_without_a_motion_head(world_ckpt, tm
         MotionTask(MotionConfig(world_model=str(tmp_path / "no-prior.pt")))
 
 
-def test_the_motion_input_needs_a_tracker_prior(world_ckpt, tmp_path):
+def test_the_motion_cache_needs_a_tracker_prior(world_ckpt, tmp_path):
     model = load_world_model(world_ckpt)
     model.forecaster.tracker_prior = False
     with pytest.raises(ValueError, match="tracker_prior"):
-        model(None, None, motion_from=(torch.zeros(1, 4, 2, 2),) * 3)
+        MotionCache(SyntheticDriving("train", 1, 13, stride=2), model, tmp_path)
 
 
 def test_a_negative_parked_weight_is_refused():

@@ -43,7 +43,7 @@ def test_the_cache_holds_the_planes_inference_encodes(world_ckpt, tmp_path):
     for i in range(len(windows)):
         sample = windows[i]
         poses = planar_poses(sample.ego_poses[None], PRESENT)[:, : PRESENT + 1]
-        planes = model.encode_history(sample.occ[None, : PRESENT + 1], poses).xy[0]
+        planes = model.pipeline.encode.planes(sample.occ[None, : PRESENT + 1], poses).xy[0]
         torch.testing.assert_close(batch.present[i], planes[-1], atol=2e-3, rtol=0)  # stored in float16
         torch.testing.assert_close(batch.previous[i], planes[-2], atol=2e-3, rtol=0)
         torch.testing.assert_close(batch.future_actions[i], sample.future_actions)
@@ -55,7 +55,7 @@ def test_a_cache_without_planes_encodes_nothing_and_holds_the_same_motion(world_
     windows = SyntheticDriving("train", 1, 13, stride=2)
     full = PlanCache(windows, model, tmp_path)
     full.build(progress=False)
-    monkeypatch.setattr(model, "encode_history", lambda *a: pytest.fail("encoded a frame"))
+    monkeypatch.setattr("t3fast.forecast.encode.encode_sequence", lambda *a: pytest.fail("encoded a frame"))
     motion = PlanCache(windows, model, tmp_path, planes=False)
     assert motion.root != full.root and motion.build(progress=False) == 1
     a, b = full.all(), motion.all()
@@ -105,18 +105,12 @@ def test_the_planner_learns_the_windows_it_sees(world_ckpt):
     base = plan_error(constant_turn_rate(past, 6), future).mean()
     opt = torch.optim.Adam(planner.parameters(), lr=1e-3)
     for _ in range(200):
-        loss = plan_error(model(None, None, plan_from=batch.inputs())[0][:, 0], future).mean()
+        loss = plan_error(planner.candidates(*batch.inputs())[0][:, 0], future).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
     assert loss < 0.3 * base
     assert all(p.grad is None for p in model.forecaster.parameters())
-
-
-def test_the_forward_pass_without_planes_is_the_planners_alone(world_ckpt):
-    model = load_world_model(world_ckpt)
-    with pytest.raises(ValueError, match="route planner's alone"):
-        model(None, None)
 
 
 def test_train_planner_retrains_only_the_planner_and_its_checkpoints_are_world_models(world_ckpt, tmp_path, capsys):
@@ -170,13 +164,13 @@ def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_o
     model = task.build_model().train()
     planner = model.planner
     batch = _windows(n=3)
-    plans, scores = model(None, None, plan_from=batch.inputs())
+    plans, scores = model(*batch.inputs())
     assert plans.shape == (3, 3, 6, 2) and scores.shape == (3, 3)
     ctr = constant_turn_rate(batch.past_actions, 6)
     torch.testing.assert_close(plans, ctr.unsqueeze(1).expand_as(plans), atol=0.05, rtol=0)  # untrained: about it
     with torch.no_grad():
         planner.head[-1].bias[-3:] = torch.tensor([0.0, 5.0, 0.0])  # mode 1 scores best
-    torch.testing.assert_close(planner(*batch.inputs()), model(None, None, plan_from=batch.inputs())[0][:, 1])
+    torch.testing.assert_close(planner(*batch.inputs()), model(*batch.inputs())[0][:, 1])
     loss, values = task.training_step(model, batch)
     assert {"closest_l2", "mode_choice"} <= set(values) and torch.isfinite(loss)
     loss.backward()

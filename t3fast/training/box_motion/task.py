@@ -25,6 +25,7 @@ from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet
+from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
@@ -66,6 +67,15 @@ def check_scene_count(data: BoxDataConfig) -> None:
                           f"synthetic train split), got {data.train_scenes} + {data.select_scenes}")
 
 
+class BoxMotionTraining(T3Former):
+    """The world model as the box motion network's training sees it (and DDP wraps): its
+    forward is that network's."""
+
+    def forward(self, views: Tensor, features: Tensor) -> Tensor:
+        """:class:`~t3fast.models.box_motion.BoxMotionNet`'s corrections of the agents."""
+        return self.box_motion(views, features)
+
+
 class BoxMotionTask:
     """Trains a box motion network for ``cfg.world_model`` alone (see the module doc)."""
 
@@ -82,7 +92,7 @@ class BoxMotionTask:
     def build_model(self) -> nn.Module:
         """The world model with a new box motion network (zero correction: the box tracker);
         every other weight from ``cfg.world_model``, frozen."""
-        model = world_model_from_checkpoint(self._state, self.cfg.world_model)
+        model = world_model_from_checkpoint(self._state, self.cfg.world_model, BoxMotionTraining)
         model.requires_grad_(False)
         model.box_motion = BoxMotionNet(model.forecaster.history, model.forecaster.steps)
         return model
@@ -108,7 +118,7 @@ class BoxMotionTask:
     def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         flip = (torch.rand(self.samples_in(batch), generator=self._generator) < 0.5).to(batch["views"].device)
         batch = mirror_agents(batch, flip)
-        correction = model(None, None, boxes_from=(batch["views"].float(), batch["features"]))
+        correction = model(batch["views"].float(), batch["features"])
         loss = class_balanced_mean(agent_errors(correction, batch), batch)
         with torch.no_grad():
             tracker = class_balanced_mean(agent_errors(torch.zeros_like(correction), batch), batch)

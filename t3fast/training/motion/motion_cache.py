@@ -25,6 +25,7 @@ from torch.nn import functional as F
 
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.forecast.agents import measured_velocities
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
@@ -124,7 +125,7 @@ class MotionCache(SceneFiles):
         device = next(self.model.parameters()).device
         recent = slice(PRESENT - 2, PRESENT + 1)
         poses = planar_poses(sample.ego_poses[None], PRESENT)[:, recent].to(device)
-        return self.model.agent_velocity(sample.occ[None, recent].to(device), poses)
+        return measured_velocities(sample.occ[None, recent].to(device), poses, self._plane)
 
     def _load(self) -> dict[str, Tensor]:
         if self._data is None:

@@ -59,6 +59,15 @@ def motion_head_loss(displacements: Tensor, targets: AgentTargets,
     return loss, {"flow_moving": moving.item(), "flow_parked": parked.item(), "miss": miss.item()}
 
 
+class MotionHeadTraining(T3Former):
+    """The world model as the motion head's training sees it (and DDP wraps): its forward is
+    the flow forecaster's tracked motion."""
+
+    def forward(self, velocity: Tensor, present: Tensor, previous: Tensor) -> Tensor:
+        """:meth:`~t3fast.models.flow_forecaster.FlowTriplaneForecaster.tracked_motion` of the windows."""
+        return self.forecaster.tracked_motion(velocity, present, previous)
+
+
 class MotionTask:
     """Trains the motion head of ``cfg.world_model`` alone (see the module doc)."""
 
@@ -76,7 +85,7 @@ class MotionTask:
     def build_model(self) -> nn.Module:
         """The world model with a new motion head (zero correction: the tracker); every other
         weight from ``cfg.world_model``."""
-        model = world_model_from_checkpoint(self._state, self.cfg.world_model)
+        model = world_model_from_checkpoint(self._state, self.cfg.world_model, MotionHeadTraining)
         model.forecaster.reset_motion_head()
         model.requires_grad_(False)
         model.forecaster.motion_head.requires_grad_(True)
@@ -106,7 +115,7 @@ class MotionTask:
     def training_step(self, model: nn.Module, batch: MotionWindows) -> tuple[Tensor, dict[str, float]]:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
-        displacements = model(None, None, motion_from=(batch.velocity, batch.present, batch.previous))
+        displacements = model(batch.velocity, batch.present, batch.previous)
         loss, parts = motion_head_loss(displacements, batch.targets, self.cfg)
         with torch.no_grad():
             prior = flow_terms(tracker_motion(batch.velocity, displacements.shape[1]), batch.targets, self.cfg.min_flow)

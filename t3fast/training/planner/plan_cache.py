@@ -4,7 +4,7 @@ The route planner (:class:`~t3fast.models.route_planner.RoutePlanner`) reads onl
 xy plane, the previous frame's (moved into the present ego frame) and the past displacements:
 two encodings per window instead of the eleven of the forecaster's cache
 (:mod:`t3fast.training.world_model.latent_cache`), so it can learn from many more scenes at the
-same cost. The frames are encoded as at inference (:meth:`T3Former.encode_history`). One
+same cost. The frames are encoded as at inference (:meth:`~t3fast.forecast.encode.EncodePast.planes`). One
 entry file per scene (float16 planes, about 0.3 MB a window with the small autoencoder;
 :class:`~t3fast.training.cache_files.SceneFiles`: checked when read, built again when broken,
 written atomically), so building is resumable and shows progress. The folder's name hashes the
@@ -103,7 +103,8 @@ class PlanCache(SceneFiles):
         occ = torch.stack([s.occ[PRESENT - 1 : PRESENT + 1] for s in samples]).to(device)
         poses = torch.stack([planar_poses(s.ego_poses[None], PRESENT)[0, PRESENT - 1 : PRESENT + 1]
                              for s in samples]).to(device)
-        return torch.cat([self.model.encode_history(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
+        encode = self.model.pipeline.encode
+        return torch.cat([encode.planes(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
                           for i in range(0, len(samples), ENCODE_WINDOWS)])
 
     def _load(self) -> dict[str, Tensor]:

@@ -45,6 +45,16 @@ def mirror_left_right(batch: PlanWindows) -> PlanWindows:
                        flip_y(batch.future_actions), mirror_command(batch.command))
 
 
+class PlannerTraining(T3Former):
+    """The world model as the planner's training sees it (and DDP wraps): its forward is the
+    route planner's."""
+
+    def forward(self, present: Tensor, previous: Tensor, past_actions: Tensor,
+                command: Tensor | None) -> tuple[Tensor, Tensor]:
+        """:meth:`~t3fast.models.route_planner.RoutePlanner.candidates` of the windows."""
+        return self.planner.candidates(present, previous, past_actions, command)
+
+
 def plan_summary(errors: Tensor) -> dict[str, float]:
     """L2 at 3 s and mean-L2 (mean over the steps up to 1, 2, 3 s, averaged; as
     :class:`~t3fast.evaluation.planning.PlanningMetrics`) of position errors ``[N, S]``."""
@@ -74,7 +84,8 @@ class PlannerTask:
                                          load_config(WorldModelConfig, task["model"]))
         weights = {k: v for k, v in self._state["model"].items() if not k.startswith("planner.")}
         weights.update({f"planner.{k}": v for k, v in fresh.state_dict().items()})
-        model = world_model_from_checkpoint({"model": weights, "config": {"task": task}}, self.cfg.world_model)
+        model = world_model_from_checkpoint({"model": weights, "config": {"task": task}}, self.cfg.world_model,
+                                            PlannerTraining)
         model.requires_grad_(False)
         model.planner.requires_grad_(True)
         self._model = model
@@ -104,7 +115,7 @@ class PlannerTask:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
         command = drop_commands(batch.command, self.cfg.command_dropout, self._generator)
-        plans, scores = model(None, None, plan_from=(batch.present, batch.previous, batch.past_actions, command))
+        plans, scores = model(batch.present, batch.previous, batch.past_actions, command)
         every = plan_error(plans, batch.future_actions.unsqueeze(1))  # [B, modes, S]
         rows = torch.arange(every.shape[0], device=every.device)
         winner = every.mean(2).argmin(1)  # the mode closest to this future learns it

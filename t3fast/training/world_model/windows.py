@@ -77,9 +77,10 @@ def ego_aligned_window(
     (poses ``[B, 11, 4, 4]``): (their encoded planes ``[B, 11, C, H, W]``, the moved labels with
     ``IGNORE`` where a frame did not see that part of the present grid).
 
-    The past frames are encoded as at inference (:meth:`T3Former.encode_history`: what a past
-    frame did not see is free). A future frame's target keeps the present frame's content
-    where that future frame did not look: the static world does not vanish behind the ego.
+    The past frames are encoded as at inference
+    (:meth:`~t3fast.forecast.encode.EncodePast.planes`: what a past frame did not see is free).
+    A future frame's target keeps the present frame's content where that future frame did not
+    look: the static world does not vanish behind the ego.
     ``frames``: encode only these (a rollout reads a few; encoding is half a step's cost), the
     planes of the others stay zero.
     """

@@ -230,3 +230,21 @@ def check_horizon(steps: int, limit: int | None, trained: int, name: str) -> Non
     if limit is not None and steps > limit:
         raise UsageError(f"{name} asks for {steps} future steps, but this model forecasts at most {limit} "
                          f"(trained on {trained}, world_config.steps)")
+
+
+def check_plan(forecaster: nn.Module, planner: nn.Module, steps: int, future_actions: Tensor | None,
+               command: Tensor | None, past_motion: Tensor) -> None:
+    """What a forecast is asked to do: ``steps`` planned from ``past_motion`` (checked) or the
+    given ``future_actions``, with ``command``; refused beyond the networks' horizon."""
+    batch, frames = past_motion.shape[:2]
+    past_actions = frames - 1 if past_motion.dim() == 4 else frames  # poses [B, T, 4, 4] or displacements
+    check_command(command, batch, isinstance(planner, RoutePlanner))
+    if future_actions is None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise UsageError(f"steps must be a positive integer, got {steps!r}")
+        check_planner_dtype("past_motion", past_motion, planner)
+        check_horizon(steps, supported_steps(forecaster, planner, past_actions, True), forecaster.steps, "steps")
+    else:
+        check_future_actions(future_actions, batch)
+        limit = supported_steps(forecaster, planner, past_actions, False)
+        check_horizon(future_actions.shape[1], limit, forecaster.steps, "future_actions")

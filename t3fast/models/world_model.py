@@ -16,15 +16,7 @@ from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
-from t3fast.models.forecast_inputs import (
-    check_command,
-    check_future_actions,
-    check_horizon,
-    check_past_motion,
-    check_past_occupancy,
-    check_planner_dtype,
-    supported_steps,
-)
+from t3fast.models.forecast_inputs import check_past_motion, check_past_occupancy, check_plan
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
 from t3fast.models.route_planner import RoutePlanner
@@ -144,21 +136,5 @@ class T3Former(nn.Module):
             raise UsageError(f"past_occupancy has {t} past frames (the present included), but this model was "
                              f"trained on {self.forecaster.history} (world_config.history)")
         check_past_motion(past_motion, b, t)
-        self._check_plan(b, t - 1, steps, future_actions, command, past_motion)
+        check_plan(self.forecaster, self.planner, steps, future_actions, command, past_motion)
         return self.pipeline(past_occupancy, past_motion, future_actions, steps, command)
-
-    def _check_plan(self, batch: int, past_actions: int, steps: int, future_actions: Tensor | None,
-                    command: Tensor | None, motion: Tensor) -> None:
-        """What the forecast is asked to do: ``steps`` planned from the past ``motion``
-        (``past_actions`` displacements) or the given ``future_actions``, with ``command``."""
-        check_command(command, batch, self.reads_command)
-        trained = self.forecaster.steps
-        if future_actions is None:
-            if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-                raise UsageError(f"steps must be a positive integer, got {steps!r}")
-            check_planner_dtype("past_motion", motion, self.planner)
-            check_horizon(steps, supported_steps(self.forecaster, self.planner, past_actions, True), trained, "steps")
-        else:
-            check_future_actions(future_actions, batch)
-            limit = supported_steps(self.forecaster, self.planner, past_actions, False)
-            check_horizon(future_actions.shape[1], limit, trained, "future_actions")

@@ -100,12 +100,12 @@ def kinematics(boxes: AgentBoxes, heading: Tensor) -> Tensor:
     track = boxes.track
     frames = track.shape[1]
     seen = ~track.isnan().any(-1)
-    ago = -torch.arange(frames - 1, 0, -1, dtype=track.dtype)  # the past frames' times, in steps
+    ago = -torch.arange(frames - 1, 0, -1, dtype=track.dtype, device=track.device)  # the past frames' times, in steps
     expected = track[:, -1:] + ago[None, :, None] * boxes.velocity[:, None]
     departure = rotate(torch.nan_to_num(track[:, :-1] - expected), -heading[:, None].expand(-1, frames - 1))
     departure = departure * seen[:, :-1, None]
     velocity = rotate(boxes.velocity, -heading)
-    classes = (boxes.label[:, None] == torch.tensor(BOX_CLASSES, dtype=boxes.label.dtype)).to(track.dtype)
+    classes = (boxes.label[:, None] == boxes.label.new_tensor(BOX_CLASSES)).to(track.dtype)
     return torch.cat([velocity, boxes.velocity.norm(dim=-1, keepdim=True), departure.flatten(1),
                       seen[:, :-1].to(track.dtype), classes, boxes.length[:, None], boxes.width[:, None]], 1).float()
 
@@ -123,12 +123,12 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     it follow it), though the labels leave it out: its footprint at the origin is drawn into the
     vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
     present = present.cpu().long()
-    held = torch.zeros(NUM_CLASSES, *present.shape[:2], dtype=torch.bool)
+    held = torch.zeros(NUM_CLASSES, *present.shape[:2], dtype=torch.bool, device=present.device)
     for z in range(present.shape[2]):
         held |= F.one_hot(present[:, :, z].clamp(max=NUM_CLASSES - 1), NUM_CLASSES).permute(2, 0, 1).bool()
     groups = [held[list(g)].any(0) for g in CONTEXT_GROUPS]
     ids = agent_ids.cpu()
-    velocity = torch.zeros(2, *ids.shape, dtype=torch.float32)
+    velocity = torch.zeros(2, *ids.shape, dtype=torch.float32, device=ids.device)
     on = ids > 0
     if bool(on.any()):
         velocity[:, on] = boxes.velocity[ids[on] - 1].T.float()
@@ -147,9 +147,10 @@ def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
     ``[n, 2]`` (metres, present frame), columns from its right to its left (symmetric about its
     centre line); the velocity channels turned into its frame."""
     n = centre.shape[0]
-    along = -CROP_BEHIND + CROP_CELL * (torch.arange(CROP[0], dtype=torch.float32) + 0.5)
-    across = CROP_CELL * (torch.arange(CROP[1], dtype=torch.float32) - (CROP[1] - 1) / 2)
-    local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1).to(context.device)  # [A, W, 2]
+    cells = dict(dtype=torch.float32, device=context.device)
+    along = -CROP_BEHIND + CROP_CELL * (torch.arange(CROP[0], **cells) + 0.5)
+    across = CROP_CELL * (torch.arange(CROP[1], **cells) - (CROP[1] - 1) / 2)
+    local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1)  # [A, W, 2]
     h = heading.float().to(context.device)[:, None, None].expand(-1, *CROP)
     points = rotate(local.expand(n, -1, -1, -1), h) + centre.float().to(context.device)[:, None, None]
     size = torch.tensor(context.shape[-2:], dtype=torch.float32, device=context.device)

@@ -17,7 +17,8 @@ Each present agent (8-connected BEV component of vehicle and human columns,
 (nearest component of its class to where its last velocity puts it), and its box is the one
 whose footprint best separates the agent's columns from the columns around them in every
 frame where it was found: a soft inside/outside (a sigmoid of the signed distance to the
-footprint's edge, sharpened over the iterations) fitted by Adam, all agents of a window at once.
+footprint's edge, sharpened over the iterations) fitted by Adam on its closed-form gradient
+(no autograd), all agents of a window at once.
 An agent is drawn as a box only where the fit explains its columns (IoU >= ``MIN_FIT_IOU``), it
 is of one class and it was seen in two frames or more; queued cars merged into one component
 or a truck with its trailer are not boxes, and move as voxels.
@@ -41,6 +42,7 @@ MIN_FIT_IOU = 0.5  # footprint IoU over the agent's frames under which it is not
 # Adam steps; 200 steps and samples 2 cells out scored the same on 16 validation windows (47.65
 # against 47.64 moving-class mIoU along the true poses) at 1.8x the cost
 FIT_ITERS = 100
+FIT_LR = 0.02  # metres (radians, log-metres) per Adam step
 SOFTNESS = (0.1, 0.015)  # metres: the sigmoid's width at the first and the last iteration
 NEAR = 1  # cells from an agent's columns that its fit samples (the farther ones say nothing)
 MAX_REACH = 21.0  # cells: an agent reaching farther from its centroid (less 3) is not fitted
@@ -86,8 +88,8 @@ def _samples(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor, reac
     frame, metres), ``owned`` ``[N]`` (one of the agent's columns), ``agent`` ``[N]`` and
     ``time`` ``[N]`` (frames before the present, <= 0)."""
     half = int(reach.max().ceil())
-    offsets = torch.stack(torch.meshgrid(torch.arange(-half, half + 1), torch.arange(-half, half + 1),
-                                         indexing="ij"), -1).reshape(-1, 2)
+    side = torch.arange(-half, half + 1, device=reach.device)
+    offsets = torch.stack(torch.meshgrid(side, side, indexing="ij"), -1).reshape(-1, 2)
     within = offsets.double().norm(dim=-1)[None] <= reach[:, None]  # [n, P]
     frames, n = len(agents), match.shape[0]
     out: dict[str, list[Tensor]] = {"position": [], "owned": [], "agent": [], "time": []}
@@ -97,7 +99,7 @@ def _samples(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor, reac
         if not bool(seen.any()):
             continue
         nx, ny = frame["ids"].shape
-        centroid = torch.zeros(n, 2, dtype=torch.float64)
+        centroid = reach.new_zeros(n, 2)
         centroid[seen] = frame["centroid"][index[seen]]
         cells = centroid.round().long()[:, None] + offsets[None]
         inside = (cells[..., 0] >= 0) & (cells[..., 0] < nx) & (cells[..., 1] >= 0) & (cells[..., 1] < ny)
@@ -109,18 +111,21 @@ def _samples(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor, reac
         out["position"].append(cell_metres(cells[keep[:, 0], keep[:, 1]].double(), poses[t]))
         out["owned"].append(owned[keep[:, 0], keep[:, 1]].double())
         out["agent"].append(keep[:, 0])
-        out["time"].append(torch.full((keep.shape[0],), float(t - (frames - 1)), dtype=torch.float64))
+        out["time"].append(reach.new_full((keep.shape[0],), float(t - (frames - 1))))
     return {k: torch.cat(v) for k, v in out.items()}
 
 
-def _footprint_margin(points: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor) -> Tensor:
-    """Signed distance inside the footprint (positive inside) of ``points`` ``[N, 2]`` for the
-    boxes (centre ``[N, 2]``, yaw, length, width ``[N]``) each is tested against."""
-    d = points - centre
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    along = c * d[:, 0] + s * d[:, 1]
-    across = -s * d[:, 0] + c * d[:, 1]
-    return torch.minimum(length / 2 - along.abs(), width / 2 - across.abs())
+@dataclass
+class FitSamples:
+    """:func:`_samples` as the fit reads them, float32 around each agent's starting centre:
+    ``points`` ``[N, 2]`` (metres), ``time`` ``[N]`` (steps, <= 0), ``agent`` ``[N]`` int64,
+    ``owned`` ``[N]`` (1: one of the agent's columns), ``count`` the loss's normaliser."""
+
+    points: Tensor
+    time: Tensor
+    agent: Tensor
+    owned: Tensor
+    count: int
 
 
 @contextmanager
@@ -135,39 +140,81 @@ def _one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
-def _optimise(start: Tensor, samples: dict[str, Tensor], iters: int) -> tuple[Tensor, Tensor]:
+def fit_loss(params: Tensor, samples: FitSamples, softness: float) -> Tensor:
+    """The objective the box fit descends (float, differentiable; the fit itself uses its
+    closed-form gradient, :func:`fit_gradient`): the summed logistic loss of the soft
+    inside/outside (signed footprint distance over ``softness`` metres) against each sample's
+    ownership, over the samples' count, plus the zero-acceleration prior. ``params`` ``[n, 9]``:
+    centre, velocity per step, yaw, log length, log width, acceleration per step^2."""
+    margin = _margins(params, samples)[0]
+    loss = F.binary_cross_entropy_with_logits(margin / softness, samples.owned, reduction="sum")
+    return loss / samples.count + ACCEL_PRIOR * params[:, 7:9].pow(2).sum() / params.shape[0]
+
+
+def _margins(params: Tensor, samples: FitSamples) -> tuple[Tensor, ...]:
+    """(the footprint margin ``[N]`` of every sample, and the terms its gradient reads)."""
+    box = params.index_select(0, samples.agent)
+    time = samples.time[:, None]
+    centre = box[:, :2] + box[:, 2:4] * time + 0.5 * box[:, 7:9] * time * time
+    d = samples.points - centre
+    c, s = torch.cos(box[:, 4]), torch.sin(box[:, 4])
+    along = c * d[:, 0] + s * d[:, 1]
+    across = -s * d[:, 0] + c * d[:, 1]
+    half_length, half_width = box[:, 5].exp() / 2, box[:, 6].exp() / 2
+    by_length, by_width = half_length - along.abs(), half_width - across.abs()
+    return torch.minimum(by_length, by_width), by_length, by_width, along, across, c, s, half_length, half_width
+
+
+def fit_gradient(params: Tensor, samples: FitSamples, softness: float) -> Tensor:
+    """The gradient ``[n, 9]`` of :func:`fit_loss` with respect to ``params``, in closed form
+    (no autograd: the fit runs at inference, batched, on any device). Where the footprint's
+    two distances tie, each takes half, as ``torch.minimum``'s gradient does."""
+    margin, by_length, by_width, along, across, c, s, half_length, half_width = _margins(params, samples)
+    g = (torch.sigmoid(margin / softness) - samples.owned) / (softness * samples.count)  # d loss / d margin
+    share = torch.where(by_length < by_width, 1.0, torch.where(by_length == by_width, 0.5, 0.0))
+    g_length, g_width = g * share, g * (1 - share)
+    g_along, g_across = -g_length * along.sign(), -g_width * across.sign()
+    g_x = -(g_along * c - g_across * s)  # d loss / d centre (the point minus the centre is d)
+    g_y = -(g_along * s + g_across * c)
+    time = samples.time
+    half_t2 = 0.5 * time * time
+    rows = torch.stack([g_x, g_y, g_x * time, g_y * time, g_along * across - g_across * along,
+                        g_length * half_length, g_width * half_width, g_x * half_t2, g_y * half_t2], 1)
+    grad = params.new_zeros(params.shape).index_add_(0, samples.agent, rows)
+    grad[:, 7:9] += 2 * ACCEL_PRIOR / params.shape[0] * params[:, 7:9]
+    return grad
+
+
+def _optimise(start: Tensor, found: dict[str, Tensor], iters: int) -> tuple[Tensor, Tensor]:
     """Boxes ``[n, 7]`` (centre, velocity per step, yaw, log length, log width; the velocity the
     present one of a constant acceleration fitted with them) fitted from ``start`` to the
-    :func:`_samples`, and each one's footprint IoU with its columns over the frames ``[n]``.
-    Fitted in float32 around each agent's starting centre (centimetres need no more), which
-    halves the cost of the sines and cosines."""
-    agent, owned = samples["agent"], samples["owned"].float()
-    time = samples["time"][:, None].float()
-    points = (samples["position"] - start[agent, :2]).float()
+    :func:`_samples` ``found``, and each one's footprint IoU with its columns over the frames
+    ``[n]``: ``iters`` Adam steps (learning rate ``FIT_LR``) on :func:`fit_gradient`, the
+    softness narrowing from ``SOFTNESS[0]`` to ``SOFTNESS[1]``. Fitted in float32 around each
+    agent's starting centre (centimetres need no more), which halves the cost of the sines and
+    cosines."""
+    agent = found["agent"]
+    samples = FitSamples((found["position"] - start[agent, :2]).float(), found["time"].float(), agent,
+                         found["owned"].float(), max(agent.numel(), 1))
     offset = start.clone()
     offset[:, 2:] = 0
     n = start.shape[0]
-    params = torch.cat([(start - offset).float(), torch.zeros(n, 2)], 1).requires_grad_(True)
-    optimiser = torch.optim.Adam([params], lr=0.02)
-
-    def margin() -> Tensor:
-        box = params.index_select(0, agent)
-        centre = box[:, :2] + box[:, 2:4] * time + 0.5 * box[:, 7:9] * time * time
-        return _footprint_margin(points, centre, box[:, 4], box[:, 5].exp(), box[:, 6].exp())
-
-    with torch.enable_grad(), _one_thread():
+    params = torch.cat([(start - offset).float(), start.new_zeros(n, 2, dtype=torch.float32)], 1)
+    mean, square = torch.zeros_like(params), torch.zeros_like(params)
+    beta1, beta2 = 0.9, 0.999  # Adam's defaults
+    with _one_thread():
         for it in range(iters):
             softness = SOFTNESS[0] * (SOFTNESS[1] / SOFTNESS[0]) ** (it / max(iters - 1, 1))
-            loss = F.binary_cross_entropy_with_logits(margin() / softness, owned, reduction="sum")
-            prior = ACCEL_PRIOR * params[:, 7:9].pow(2).sum() / n
-            optimiser.zero_grad()
-            (loss / max(owned.numel(), 1) + prior).backward()
-            optimiser.step()
-    with torch.no_grad():
-        inside = (margin() > 0).float()
-    both = torch.zeros(n).index_add_(0, agent, inside * owned)
-    either = torch.zeros(n).index_add_(0, agent, (inside + owned).clamp(max=1))
-    return params[:, :7].detach().double() + offset, (both / either.clamp(min=1)).double()
+            grad = fit_gradient(params, samples, softness)
+            mean.lerp_(grad, 1 - beta1)
+            square.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = (square.sqrt() / math.sqrt(1 - beta2 ** (it + 1))).add_(1e-8)
+            params.addcdiv_(mean, denom, value=-FIT_LR / (1 - beta1 ** (it + 1)))
+        inside = (_margins(params, samples)[0] > 0).float()
+    owned = samples.owned
+    both = owned.new_zeros(n).index_add_(0, agent, inside * owned)
+    either = owned.new_zeros(n).index_add_(0, agent, (inside + owned).clamp(max=1))
+    return params[:, :7].double() + offset, (both / either.clamp(min=1)).double()
 
 
 def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tuple[dict[str, Tensor], AgentBoxes]:
@@ -184,11 +231,11 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
         raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
                          f"{list(frames.shape)} and {list(poses.shape)}")
     frames, poses = frames.cpu(), poses.cpu().double()
-    wanted = torch.tensor(AGENT_CLASSES, dtype=frames.dtype)
+    wanted = frames.new_tensor(AGENT_CLASSES)
     agents = [frame_agents(f, wanted) for f in frames]
     now = agents[-1]
     n = now["cls"].shape[0]
-    empty = torch.zeros(n, dtype=torch.float64)
+    empty = poses.new_zeros(n)
     if n == 0:
         return now, AgentBoxes(empty.view(0, 2), empty.view(0, 2), empty, empty, empty, empty.long(),
                                empty.long(), now["cls"], empty.bool(), empty.view(0, frames.shape[0], 2))
@@ -200,12 +247,12 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
     # start: the present centroid, the last step's velocity, the principal axis and extents
     centre = cell_metres(now["centroid"], poses[-1])
     velocity = torch.zeros_like(centre)
-    before = match[:, -2] >= 0 if match.shape[1] > 1 else torch.zeros(n, dtype=torch.bool)
+    before = match[:, -2] >= 0 if match.shape[1] > 1 else match.new_zeros(n, dtype=torch.bool)
     if bool(before.any()):
         velocity[before] = centre[before] - cell_metres(agents[-2]["centroid"][match[before, -2]], poses[-2])
     spread_m = offset * VOXEL_SIZE
-    cov = torch.zeros(n, 2, 2, dtype=torch.float64).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])
-    axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64))[1][..., 1]
+    cov = poses.new_zeros(n, 2, 2).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])
+    axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64, device=cov.device))[1][..., 1]
     along = (spread_m * axis[owner]).sum(-1).abs()
     across = (spread_m[:, 1] * axis[owner, 0] - spread_m[:, 0] * axis[owner, 1]).abs()
     length = empty.clone().scatter_reduce_(0, owner, along, "amax", include_self=True) * 2 + VOXEL_SIZE
@@ -220,11 +267,11 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
                                               iters)
     centre, velocity, yaw = params[:, :2], params[:, 2:4], params[:, 4]
     length, width = params[:, 5].exp(), params[:, 6].exp()
-    votes = torch.zeros(n, NUM_CLASSES, dtype=torch.long).index_put_(
+    votes = match.new_zeros(n, NUM_CLASSES).index_put_(
         (now["component"], now["label"]), torch.ones_like(now["label"]), accumulate=True)
     z = now["ijz"][:, 2]
-    bottom = torch.full((n,), frames.shape[-1], dtype=torch.long).scatter_reduce_(0, now["component"], z, "amin")
-    top = torch.zeros(n, dtype=torch.long).scatter_reduce_(0, now["component"], z + 1, "amax")
+    bottom = match.new_full((n,), frames.shape[-1]).scatter_reduce_(0, now["component"], z, "amin")
+    top = match.new_zeros(n).scatter_reduce_(0, now["component"], z + 1, "amax")
     drawn = (iou >= MIN_FIT_IOU) & (votes.max(1).values == votes.sum(1)) & ((match >= 0).sum(1) >= 2)
     return now, AgentBoxes(centre, velocity, yaw, length, width, bottom, top, now["cls"], drawn,
                            _tracks(agents, match, poses))
@@ -233,7 +280,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
 def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Tensor:
     """Each followed agent's column centroid in every frame (:func:`follow_agents`' ``match``
     ``[n, T]``), in the present frame: ``[n, T, 2]`` metres, NaN where it was not found."""
-    track = torch.full((*match.shape, 2), math.nan, dtype=torch.float64)
+    track = poses.new_full((*match.shape, 2), math.nan)
     for t, frame in enumerate(agents):
         seen = match[:, t] >= 0
         if bool(seen.any()):
@@ -254,7 +301,7 @@ def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor
     d = centre.double() - pose[:2].double()
     local = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1).tolist()
     heading = (yaw.double() - float(pose[2])).tolist()
-    levels = torch.arange(volume.shape[2])
+    levels = torch.arange(volume.shape[2], device=bottom.device)
     for i, ((x, y), h) in enumerate(zip(local, heading)):
         footprint = box_footprint(x, y, float(length[i]), float(width[i]), h, volume.shape[:2])
         if footprint is None:

@@ -255,12 +255,13 @@ def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
     tracker's gate, the next ones ``FOLLOW_GATE`` around the position its velocity predicts."""
     now = agents[-1]
     n, frames = now["cls"].shape[0], len(agents)
-    match = torch.full((n, frames), -1, dtype=torch.long)
-    match[:, -1] = torch.arange(n)
+    device = now["centroid"].device
+    match = torch.full((n, frames), -1, dtype=torch.long, device=device)
+    match[:, -1] = torch.arange(n, device=device)
     position = cell_metres(now["centroid"], poses[-1])
     velocity = torch.zeros_like(position)
-    gate = torch.full((n,), TRACK_GATE, dtype=torch.float64)
-    alive = torch.ones(n, dtype=torch.bool)
+    gate = torch.full((n,), TRACK_GATE, dtype=torch.float64, device=device)
+    alive = torch.ones(n, dtype=torch.bool, device=device)
     for t in range(frames - 2, -1, -1):
         before = agents[t]
         if before["cls"].shape[0] == 0:

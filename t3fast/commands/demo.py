@@ -65,7 +65,8 @@ def save_pictures(model, dataset, indices: list[int], out: Path) -> list[Path]:
         written += save_forecast_pictures(out / name, past, labels, truth, plan, true_plan)
         written.append(write_window_viewer(out / f"{name}.html", sample, labels, plan, f"T3Former forecast, {name}"))
         if n == 0 and model.ego_aligned:  # steered: the same window if the ego stopped now
-            steered, stopped = forecast_window(model, sample, future_actions=torch.zeros(1, NUM_FUTURE, 2))
+            stop = torch.zeros(1, NUM_FUTURE, 2, device=next(model.parameters()).device)
+            steered, stopped = forecast_window(model, sample, future_actions=stop)
             written += save_forecast_pictures(out / f"{name}-steered-stop", past, steered, truth, stopped, true_plan)
     return written
 

@@ -73,7 +73,10 @@ def forecast_window(model, sample, future_actions: torch.Tensor | None = None) -
     the CPU. ``future_actions`` ``[1, 6, 2]``: steered along these displacements instead."""
     from t3fast.data.sample import PRESENT, collate_samples
 
-    batch = collate_samples([sample]).to(next(model.parameters()).device)
+    device = next(model.parameters()).device
+    batch = collate_samples([sample]).to(device)
+    if future_actions is not None:
+        future_actions = future_actions.to(device)
     out = model.forecast(batch.past_occ, batch.ego_poses[:, : PRESENT + 1], future_actions=future_actions)
     return out.labels[0].cpu().numpy(), out.trajectory[0].cpu().numpy()
 

@@ -103,10 +103,10 @@ class DrivingBatch:
 def collate_samples(samples: list[DrivingSample]) -> DrivingBatch:
     """Stack samples into a ``DrivingBatch``, padding the agent dimension."""
     a_max = max(s.box_labels.shape[0] for s in samples)
-    b = len(samples)
-    boxes = torch.zeros(b, WINDOW, a_max, 7)
-    valid = torch.zeros(b, WINDOW, a_max, dtype=torch.bool)
-    labels = torch.full((b, a_max), -1, dtype=torch.int64)
+    b, device = len(samples), samples[0].boxes.device
+    boxes = torch.zeros(b, WINDOW, a_max, 7, device=device)
+    valid = torch.zeros(b, WINDOW, a_max, dtype=torch.bool, device=device)
+    labels = torch.full((b, a_max), -1, dtype=torch.int64, device=device)
     for k, s in enumerate(samples):
         a = s.box_labels.shape[0]
         boxes[k, :, :a] = s.boxes

@@ -45,7 +45,7 @@ class OccupancyMetrics:
         num_classes: number of label values, free included (18 for Occ3D).
         free_class: the label of empty space (17).
         ignore_index: target value that is never scored (255).
-        device: where the matrix lives; CPU when ``None``. Updates may come from any device.
+        device: where the matrix lives (the CPU by default). Updates may come from any device.
         class_names: one name per class, used by :meth:`summary` and :meth:`table`.
     """
 
@@ -54,7 +54,7 @@ class OccupancyMetrics:
         num_classes: int = NUM_CLASSES,
         free_class: int = FREE,
         ignore_index: int = IGNORE,
-        device: torch.device | str | None = None,
+        device: torch.device | str = "cpu",
         class_names: tuple[str, ...] | None = None,
     ) -> None:
         if not 0 <= free_class < num_classes:
@@ -69,7 +69,8 @@ class OccupancyMetrics:
         self.ignore_index = ignore_index
         self.class_names = tuple(names)
         self.confusion = torch.zeros(num_classes, num_classes, dtype=torch.int64, device=device)
-        self._semantic = torch.tensor([c for c in range(num_classes) if c != free_class], dtype=torch.long)
+        semantic = [c for c in range(num_classes) if c != free_class]
+        self._semantic = torch.tensor(semantic, dtype=torch.long, device="cpu")
 
     # accumulation
 
@@ -184,7 +185,7 @@ class OccupancyMetrics:
             if not classes or any(c not in semantic for c in classes):
                 raise ValueError(f"classes must be a non-empty subset of the semantic classes {semantic}, "
                                  f"got {list(classes)}")
-            pick = torch.tensor([semantic.index(c) for c in classes], dtype=torch.long)
+            pick = torch.tensor([semantic.index(c) for c in classes], dtype=torch.long, device="cpu")
             iou, present = iou[pick], present[pick]
         if absent == "one":
             return float(torch.where(present, iou, torch.ones_like(iou)).mean())

@@ -49,7 +49,7 @@ class MoveAgents:
               ids: list[Tensor] | None) -> AgentMoves:
         """Sample ``n``'s moves: its agents ``now``, their ``shift`` ``[S, n, 2]`` and ``fitted`` boxes."""
         if fitted is None:
-            return AgentMoves(now, shift, torch.zeros(now["cls"].shape[0], dtype=torch.bool), None, None)
+            return AgentMoves(now, shift, now["cls"].new_zeros(now["cls"].shape[0], dtype=torch.bool), None, None)
         if fitted.label.shape[0] != now["cls"].shape[0]:
             raise ValueError(f"{fitted.label.shape[0]} fitted boxes for the {now['cls'].shape[0]} agents "
                              "of the present frame: fit them on the same frames")

@@ -83,7 +83,7 @@ def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, age
     ``ego_velocity`` ``[2]`` (see :func:`context_map`)."""
     n = boxes.centre.shape[0]
     if n == 0:
-        return torch.zeros(net.steps, 0, 3, dtype=torch.float64)
+        return torch.zeros(net.steps, 0, 3, dtype=torch.float64, device=boxes.centre.device)
     heading = agent_headings(boxes)
     device = next(net.parameters()).device
     views = crop_context(context_map(present, boxes, agent_ids, ego_velocity).to(device), boxes.centre, heading)

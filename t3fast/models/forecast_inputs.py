@@ -248,3 +248,12 @@ def check_plan(forecaster: nn.Module, planner: nn.Module, steps: int, future_act
         check_future_actions(future_actions, batch)
         limit = supported_steps(forecaster, planner, past_actions, False)
         check_horizon(future_actions.shape[1], limit, forecaster.steps, "future_actions")
+
+
+def check_devices(device: torch.device, **inputs: Tensor | None) -> None:
+    """Every given input on ``device``, where the model's weights are (a mix fails deep inside
+    the forecast, naming neither argument); what is not a tensor is left to its own check."""
+    for name, value in inputs.items():
+        if isinstance(value, Tensor) and value.device != device:
+            raise UsageError(f"{name} is on {value.device}, but the model's weights are on {device}: move it there "
+                             f"(.to({str(device)!r})) or the model to it")

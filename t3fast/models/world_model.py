@@ -16,7 +16,7 @@ from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
-from t3fast.models.forecast_inputs import check_past_motion, check_past_occupancy, check_plan
+from t3fast.models.forecast_inputs import check_devices, check_past_motion, check_past_occupancy, check_plan
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
 from t3fast.models.route_planner import RoutePlanner
@@ -128,13 +128,16 @@ class T3Former(nn.Module):
         motions, motion beyond what a vehicle does (a step over 100 m between frames, a pose
         over 1e7 m from the world origin: :mod:`~t3fast.models.forecast_inputs`), integer
         motion (to plan with the autoregressive planner: motion of another dtype than its
-        weights), and more future steps than the model forecasts (naming its maximum).
+        weights), more future steps than the model forecasts (naming its maximum), and an input
+        on another device than the model's weights (the forecast runs where they are).
         """
         check_past_occupancy(past_occupancy, self.encoder.config.grid)
         b, t = past_occupancy.shape[:2]
         if t != self.forecaster.history:  # it would run, on inputs it never saw
             raise UsageError(f"past_occupancy has {t} past frames (the present included), but this model was "
                              f"trained on {self.forecaster.history} (world_config.history)")
+        check_devices(next(self.parameters()).device, past_occupancy=past_occupancy, past_motion=past_motion,
+                      future_actions=future_actions, command=command)
         check_past_motion(past_motion, b, t)
         check_plan(self.forecaster, self.planner, steps, future_actions, command, past_motion)
         return self.pipeline(past_occupancy, past_motion, future_actions, steps, command)

@@ -10,7 +10,7 @@ import torch
 
 from t3fast.agents import boxes as boxes_module
 from t3fast.agents.boxes import FitSamples, draw_agent_boxes, fit_agent_boxes, fit_gradient, fit_loss
-from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK
+from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK, box_footprint
 from t3fast.data.synthetic.render import draw_boxes
 from t3fast.data.synthetic.world import ON_GROUND, z_level
 from t3fast.models.ego_motion import relative
@@ -115,6 +115,29 @@ def test_drawn_boxes_are_the_columns_the_data_fills():
     draw_agent_boxes(volume, boxes[:, :2], boxes[:, 6], boxes[:, 3], boxes[:, 4], torch.full((2,), ON_GROUND), tops,
                      torch.tensor([CAR, PEDESTRIAN]), pose)
     assert torch.equal(volume, expected)
+
+
+def test_overlapping_boxes_are_drawn_in_order_level_by_level_and_off_grid_ones_are_clipped():
+    """The later box wins where two cover a voxel, only on the levels it spans; a box half off
+    the grid draws its part on the grid; the result is box by box with the data's footprint."""
+    boxes = torch.tensor([[0.3, 0.2, 5.0, 2.2, 0.4], [1.1, -0.3, 3.0, 1.8, -0.5], [39.1, -39.6, 4.0, 2.0, 1.0],
+                          [-55.0, 0.0, 4.0, 2.0, 0.0]], dtype=torch.float64)
+    bottom, top = torch.tensor([1, 0, 1, 1]), torch.tensor([6, 3, 3, 3])
+    labels = torch.tensor([TRUCK, CAR, CAR, CAR])
+    volume = torch.from_numpy(_empty())
+    expected = volume.clone()
+    for i in range(4):  # box by box, as the synthetic data draws them
+        footprint = box_footprint(*boxes[i].tolist(), GRID[:2])
+        if footprint is not None:
+            rows, cols, inside = footprint
+            levels = (torch.arange(GRID[2]) >= bottom[i]) & (torch.arange(GRID[2]) < top[i])
+            block = expected[rows, cols]
+            block[torch.from_numpy(inside)[:, :, None] & levels] = int(labels[i])
+    draw_agent_boxes(volume, boxes[:, :2], boxes[:, 4], boxes[:, 2], boxes[:, 3], bottom, top, labels,
+                     torch.zeros(3, dtype=torch.float64))
+    assert torch.equal(volume, expected)
+    assert (volume == TRUCK).any() and (volume[:, :, 3:6] == TRUCK).sum() > (volume[:, :, 1:3] == TRUCK).sum()
+    assert (volume[190:, :10] == CAR).any()  # the corner box, clipped
 
 
 def test_agents_the_fit_cannot_explain_move_as_voxels():

@@ -122,12 +122,12 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     fitted velocity (metres per step, present frame). The ego is a vehicle too (the agents behind
     it follow it), though the labels leave it out: its footprint at the origin is drawn into the
     vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
-    present = present.cpu().long()
+    present = present.long()
     held = torch.zeros(NUM_CLASSES, *present.shape[:2], dtype=torch.bool, device=present.device)
     for z in range(present.shape[2]):
         held |= F.one_hot(present[:, :, z].clamp(max=NUM_CLASSES - 1), NUM_CLASSES).permute(2, 0, 1).bool()
     groups = [held[list(g)].any(0) for g in CONTEXT_GROUPS]
-    ids = agent_ids.cpu()
+    ids = agent_ids.to(present.device)
     velocity = torch.zeros(2, *ids.shape, dtype=torch.float32, device=ids.device)
     on = ids > 0
     if bool(on.any()):
@@ -135,9 +135,10 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     footprint = box_footprint(0.0, 0.0, EGO_LENGTH, EGO_WIDTH, 0.0, tuple(ids.shape))
     if footprint is not None:
         rows, cols, inside = footprint
-        ego = torch.from_numpy(inside)
+        ego = torch.from_numpy(inside).to(ids.device)
         groups[VEHICLES][rows, cols] |= ego
-        velocity[:, rows, cols] = torch.where(ego, ego_velocity.float().view(2, 1, 1), velocity[:, rows, cols])
+        ego_motion = ego_velocity.to(ids.device, torch.float32).view(2, 1, 1)
+        velocity[:, rows, cols] = torch.where(ego, ego_motion, velocity[:, rows, cols])
     return torch.cat([torch.stack(groups).float(), velocity])
 
 

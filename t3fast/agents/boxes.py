@@ -233,7 +233,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
     if frames.dim() != 4 or poses.shape != (frames.shape[0], 3):
         raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
                          f"{list(frames.shape)} and {list(poses.shape)}")
-    frames, poses = frames.cpu(), poses.cpu().double()
+    poses = poses.to(frames.device, torch.float64)
     wanted = frames.new_tensor(AGENT_CLASSES)
     agents = [frame_agents(f, wanted) for f in frames]
     now = agents[-1]

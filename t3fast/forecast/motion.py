@@ -58,8 +58,8 @@ class MoveAgents:
             return AgentMoves(now, shift, as_box, fitted, None)
         if self.box_motion is not None:
             future = predict_box_poses(self.box_motion, past.occupancy[n, -1], fitted, ids[n],
-                                       ego_step(past.poses[n].cpu()))
+                                       ego_step(past.poses[n]))
             return AgentMoves(now, shift, as_box, fitted, future[:, as_box])
-        centre = fitted.centre[as_box] + shift[:, as_box.to(shift.device)].cpu() * VOXEL_SIZE
+        centre = fitted.centre[as_box] + shift[:, as_box.to(shift.device)].to(fitted.centre.device) * VOXEL_SIZE
         yaw = fitted.yaw[as_box].expand(shift.shape[0], -1)
         return AgentMoves(now, shift, as_box, fitted, torch.cat([centre, yaw[..., None]], -1))

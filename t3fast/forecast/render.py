@@ -166,7 +166,7 @@ class DrawAgents:
         self._fill_unseen(labels, scene.futures, poses)
         for n, move in enumerate(moves):
             if move.box_poses is not None:
-                self._draw_boxes(labels[n], move, poses[n].cpu())
+                self._draw_boxes(labels[n], move, poses[n])
         return labels
 
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:

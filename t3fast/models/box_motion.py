@@ -87,5 +87,5 @@ def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, age
     heading = agent_headings(boxes)
     device = next(net.parameters()).device
     views = crop_context(context_map(present, boxes, agent_ids, ego_velocity).to(device), boxes.centre, heading)
-    correction = symmetric_correction(net, views, kinematics(boxes, heading).to(device)).cpu()
+    correction = symmetric_correction(net, views, kinematics(boxes, heading).to(device)).to(boxes.centre.device)
     return future_poses(boxes, heading, correction)

@@ -1,6 +1,9 @@
-"""The world model's forecasting step at batch 1: forecaster, planner and decoding the 6 future
-frames to labels, from the encoded past frames (untrained weights: speed does not depend on
-them). One JSON line per (size, mode) is appended to ``--out`` as soon as it is measured.
+"""The whole forecast, ``model.forecast(past labels, past poses)``: encoding the 5 past frames,
+the agents (tracker, box fit), the forecaster, the planner and the 6 future frames rendered to
+labels, of a synthetic validation window (repeated ``--batch`` times). Sizes: ``shipped`` (the
+shipped ``wm-small`` weights) and the untrained presets (``small``, ``paper``: their speed does
+not depend on the weights; ``tiny`` for dry runs). One JSON line per (size, mode, batch) is
+appended to ``--out`` as soon as it is measured.
 
 Modes:
   eager            the compiled t3fast operators, plain PyTorch around them
@@ -9,8 +12,8 @@ Modes:
   compile          ``torch.compile(mode="reduce-overhead")``: Inductor plus CUDA graphs on a GPU
                    (``mode="default"`` on the CPU)
 
-Each row: median and 90th-percentile step time, FPS (steps per second, 1 / median), and the
-peak memory of the mode (``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
+Each row: median and 90th-percentile time of one call, FPS (windows forecast per second:
+batch / median), and the peak memory of the mode (``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
 the model was built: weights, inputs, activations and graph pools).
 """
 
@@ -34,8 +37,8 @@ MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
 
 
 def sizes() -> dict:
-    """Named (autoencoder, world model) configs: the presets, and ``tiny`` (``small`` on a
-    32 x 32 x 8 grid) for dry runs."""
+    """Named (autoencoder, world model) configs of the untrained sizes: the presets, and ``tiny``
+    (``small`` on a 32 x 32 x 8 grid) for dry runs."""
     from t3fast.presets import WORLD_MODEL_SIZES, autoencoder_size, world_model_size
 
     out = {name: (autoencoder_size(name), world_model_size(name)) for name in WORLD_MODEL_SIZES}
@@ -43,17 +46,26 @@ def sizes() -> dict:
     return out
 
 
-def build(size: str, device: torch.device):
-    """Untrained T3Former of a named size, its encoded past (5 frames) and past actions."""
+def build(size: str, device: torch.device, batch: int):
+    """The world model of a named size (``shipped``: the shipped weights) and the past labels
+    ``[batch, 5, X, Y, Z]`` and poses ``[batch, 5, 4, 4]`` of a validation window."""
+    from t3fast.data.sample import PRESENT
+    from t3fast.data.synthetic import SyntheticDriving
     from t3fast.models.world_model import T3Former
+    from t3fast.pretrained import load_world_model
 
     torch.manual_seed(0)
-    ae, world = sizes()[size]
-    model = T3Former.from_config(ae, world).to(device).eval()
-    g = torch.Generator().manual_seed(0)
-    occupancy = torch.randint(0, ae.num_classes, (1, world.history, *ae.grid), generator=g, dtype=torch.uint8)
-    actions = (torch.randn(1, world.past_actions, 2, generator=g) * 0.5).to(device)
-    return model, model.pipeline.encode(occupancy.to(device), actions), actions
+    if size == "shipped":
+        model = load_world_model("wm-small")
+    else:
+        ae, world = sizes()[size]
+        model = T3Former.from_config(ae, world)
+    model = model.to(device).eval()
+    x, y, z = model.encoder.config.grid
+    sample = SyntheticDriving("val", 1, 20, stride=9)[0]
+    occupancy = sample.occ[None, : PRESENT + 1, :x, :y, :z].expand(batch, -1, -1, -1, -1).contiguous()
+    poses = sample.ego_poses[None, : PRESENT + 1].expand(batch, -1, -1, -1).contiguous()
+    return model, occupancy.to(device), poses.to(device)
 
 
 @contextlib.contextmanager
@@ -70,13 +82,11 @@ def reference_ops(model):
         forecaster_module.delta_fuse, model.decoder.backend = fused_delta_fuse, backend
 
 
-def step_function(model, past, actions, mode: str, device: torch.device):
-    """A no-argument callable running one forecasting step, and a context to run it in."""
-
-    pipeline = model.pipeline
+def step_function(model, occupancy, poses, mode: str, device: torch.device):
+    """A no-argument callable running one whole forecast, and a context to run it in."""
 
     def step():
-        out = pipeline.from_past(past, None, 6, None)
+        out = model.forecast(occupancy, poses)
         return out.labels, out.actions
 
     if mode in ("eager", "eager-reference"):
@@ -120,17 +130,17 @@ def measure(fn, device: torch.device, warmup: int, min_iters: int, max_iters: in
     return times
 
 
-def run_row(size: str, mode: str, device: torch.device, quick: bool) -> dict:
-    row: dict = {"size": size, "mode": mode, "device": str(device), "batch": 1}
+def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int = 1) -> dict:
+    row: dict = {"size": size, "mode": mode, "device": str(device), "batch": batch}
     if device.type == "cuda":
         torch.cuda.empty_cache()
         torch.cuda.reset_peak_memory_stats(device)
         base = torch.cuda.memory_allocated(device)
-    model, past, actions = build(size, device)
+    model, occupancy, poses = build(size, device, batch)
     row["params_m"] = sum(p.numel() for p in model.parameters()) / 1e6
     row["weights_mb"] = sum(p.numel() * p.element_size() for p in model.parameters()) / 2**20
     start = time.perf_counter()
-    fn, context = step_function(model, past, actions, mode, device)
+    fn, context = step_function(model, occupancy, poses, mode, device)
     with context, torch.no_grad():
         warmup = 1 if quick else (3 if mode == "compile" else 2)
         times = measure(fn, device, warmup, min_iters=2 if quick else 10, max_iters=2 if quick else 200,
@@ -139,11 +149,11 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool) -> dict:
     row["iters"] = len(times)
     row["median_ms"] = statistics.median(times) * 1e3
     row["p90_ms"] = sorted(times)[math.ceil(0.9 * len(times)) - 1] * 1e3  # nearest rank
-    row["fps"] = 1e3 / row["median_ms"]
+    row["fps"] = batch * 1e3 / row["median_ms"]
     if device.type == "cuda":
         row["peak_allocated_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
         row["peak_reserved_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
-    del fn, model, past, actions
+    del fn, model, occupancy, poses
     if mode == "compile":
         torch._dynamo.reset()  # drop the compiled code and what its guards hold
     gc.collect()
@@ -153,7 +163,8 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.gpu.forecast", description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
-    parser.add_argument("--sizes", default="small,paper", help="comma-separated world model sizes")
+    parser.add_argument("--sizes", default="shipped,small,paper", help="comma-separated world model sizes")
+    parser.add_argument("--batch", type=int, default=1, help="windows per call")
     parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, from {MODES}")
     parser.add_argument("--quick", action="store_true", help="two timed steps per row")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines file (appended to)")
@@ -170,13 +181,14 @@ def main(argv: list[str] | None = None) -> int:
     for mode in modes:  # every size of a mode before the next (slower to set up) mode
         for size in sizes:
             try:
-                row = run_row(size, mode, device, args.quick)
-                print(f"{size:>6} {mode:<16} {row['median_ms']:9.2f} ms {row['fps']:8.1f} FPS"
+                row = run_row(size, mode, device, args.quick, args.batch)
+                print(f"{size:>7} {mode:<16} x{args.batch:<3} {row['median_ms']:9.2f} ms {row['fps']:8.1f} FPS"
                       + (f" {row['peak_allocated_mb']:8.0f} MB" if "peak_allocated_mb" in row else ""), flush=True)
             except Exception as exc:
                 traceback.print_exc()
                 failures += 1
-                row = {"size": size, "mode": mode, "device": str(device), "error": f"{type(exc).__name__}: {exc}"}
+                row = {"size": size, "mode": mode, "device": str(device), "batch": args.batch,
+                       "error": f"{type(exc).__name__}: {exc}"}
                 torch._dynamo.reset()
                 gc.collect()
             with args.out.open("a") as f:

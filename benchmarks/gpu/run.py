@@ -9,8 +9,9 @@ Stages, each with its own time limit and each run whatever happened before it:
             float16 / bfloat16, opcheck, compile (junit XML and log)
   ops       op benchmarks, fused against reference in one pytest-benchmark JSON, with the
             FLOPs and bytes of each workload
-  forecast  the world model's forecasting step at batch 1: small and paper sizes, eager,
-            reference ops, CUDA graph, torch.compile; FPS and peak memory
+  forecast  the whole forecast (encoding included) of the shipped model and the untrained
+            small and paper sizes: eager, reference ops, CUDA graph, torch.compile at batch 1,
+            eager at batch 64; FPS and peak memory
   train_ae  a timed burst of ``t3fast train-ae --config paper`` under torchrun (NCCL, AMP)
   train_wm  the same for ``t3fast train-wm --config paper``
 
@@ -146,13 +147,14 @@ def _forecast_steps(ctx: Context, d: Path) -> list[Step]:
     """One process per group of modes: a failed CUDA-graph capture or compilation cannot spoil
     the others, and a time-out ends only the last (slowest) group. Compilation takes minutes
     (the six-step rollout is traced whole), so each size compiles in its own process, small first."""
-    groups = {"eager": ("tiny", "eager")} if ctx.quick else {
-        "eager": ("small,paper", "eager,eager-reference"), "cuda-graph": ("small,paper", "cuda-graph"),
-        "compile-small": ("small", "compile"), "compile-paper": ("paper", "compile")}
+    groups = {"eager": ("tiny", "eager", 1)} if ctx.quick else {
+        "eager": ("shipped,small,paper", "eager,eager-reference", 1), "batch-64": ("shipped", "eager", 64),
+        "cuda-graph": ("shipped,small,paper", "cuda-graph", 1), "compile-shipped": ("shipped", "compile", 1),
+        "compile-paper": ("paper", "compile", 1)}
     steps = []
-    for name, (sizes, modes) in groups.items():
+    for name, (sizes, modes, batch) in groups.items():
         argv = [PY, f"{HERE}/forecast.py", "--device", ctx.device, "--sizes", sizes, "--modes", modes,
-                "--out", str(d / "results.jsonl")]
+                "--batch", str(batch), "--out", str(d / "results.jsonl")]
         steps.append(Step(f"forecast-{name}", argv + (["--quick"] if ctx.quick else [])))
     return steps
 

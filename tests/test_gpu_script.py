@@ -15,7 +15,7 @@ from benchmarks.gpu import report as gpu_report
 from benchmarks.gpu import run as gpu_run
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ["env", "build", "tests", "ops", "forecast", "train_ae", "train_wm"]
+STAGES = ["env", "build", "tests", "ops", "forecast", "demo", "train_ae", "train_wm"]
 
 
 @pytest.mark.slow
@@ -25,8 +25,8 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
     out = tmp_path / "gpu"
     env = dict(os.environ, PYTHON=sys.executable)
     proc = subprocess.run(["bash", str(ROOT / "benchmarks" / "gpu" / "run.sh"), str(out), "--device", "cpu",
-                           "--quick", "--budget", "400"], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=500)
+                           "--quick", "--budget", "500"], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=600)
     summary = json.loads((out / "summary.json").read_text())
     statuses = {s["name"]: s["status"] for s in summary["stages"]}
     logs = "\n".join(f"--- {p.relative_to(out)}\n{p.read_text()[-1500:]}" for p in sorted(out.glob("*/*.log"))
@@ -35,7 +35,7 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
     assert proc.returncode == 0
     assert (out / "summary.md").read_text().strip().endswith("all stages passed")
     for path in ["env/env.json", "build/build_info.json", "tests/junit.xml", "ops/benchmarks.json",
-                 "forecast/results.jsonl", "train_ae/result.json", "train_wm/result.json"]:
+                 "forecast/results.jsonl", "demo/demo/metrics.json", "train_ae/result.json", "train_wm/result.json"]:
         assert (out / path).is_file(), path
     bench = json.loads((out / "ops" / "benchmarks.json").read_text())
     assert all({"flops", "bytes"} <= set(b["extra_info"]) for b in bench["benchmarks"])
@@ -115,3 +115,24 @@ def test_report_roofline_fraction(tmp_path):
     assert "67 TFLOP/s dense fp32" in text and "4.8 TB/s HBM" in text
     assert gpu_report.peaks_for("NVIDIA H100 80GB HBM3")[0] == "H100"
     assert gpu_report.peaks_for("NVIDIA H100 PCIe")[0] == "H100 PCIe"
+
+
+def test_the_demo_is_held_against_the_cpu_runs_metrics(tmp_path, monkeypatch):
+    """Every row both runs score is compared; one beyond the tolerance fails the stage, naming it."""
+    want = {"t3former": {"miou": {"avg": 26.54}}, "copy_paste": {"miou": {"avg": 10.40}},
+            "constant_turn_rate": {"miou": None}}
+    cpu = tmp_path / "cpu.json"
+    cpu.write_text(json.dumps(want))
+    monkeypatch.setattr(gpu_run, "CPU_DEMO_METRICS", cpu)
+    ctx = gpu_run.Context(out=tmp_path, device="cuda", quick=False, arch="9.0", jobs=1, nproc=1)
+    (tmp_path / "demo").mkdir()
+    got = {"t3former": {"miou": {"avg": 26.56}}, "copy_paste": {"miou": {"avg": 10.40}},
+           "constant_turn_rate": {"miou": None}, "t3former_gt_ego": {"miou": {"avg": 61.0}}}
+    (tmp_path / "demo" / "metrics.json").write_text(json.dumps(got))
+    ok, detail = gpu_run._check_demo(ctx, tmp_path)
+    assert ok and detail.startswith("2 rows against the CPU run, largest Avg mIoU difference 0.020 (t3former")
+    got["copy_paste"]["miou"]["avg"] = 10.50
+    (tmp_path / "demo" / "metrics.json").write_text(json.dumps(got))
+    ok, detail = gpu_run._check_demo(ctx, tmp_path)
+    assert not ok and "0.100 (copy_paste; allowed 0.05)" in detail
+

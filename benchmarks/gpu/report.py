@@ -152,8 +152,8 @@ def forecast_section(out: Path) -> list[str]:
         if "error" in r:
             body.append([r["size"], r["mode"], str(r.get("batch", 1)), "error", "", "", "", "", r["error"][:80]])
             continue
-        body.append([r["size"], r["mode"], str(r.get("batch", 1)), _fmt(r["median_ms"], ".2f"), _fmt(r["p90_ms"], ".2f"),
-                     _fmt(r["fps"], ".1f"),
+        body.append([r["size"], r["mode"], str(r.get("batch", 1)), _fmt(r["median_ms"], ".2f"),
+                     _fmt(r["p90_ms"], ".2f"), _fmt(r["fps"], ".1f"),
                      _fmt(r.get("peak_allocated_mb"), ".0f"), _fmt(r.get("peak_reserved_mb"), ".0f"),
                      f"{r['params_m']:.2f} M params, set-up {r['setup_s']:.1f} s, {r['iters']} steps timed"])
     header = ["size", "mode", "batch", "median (ms)", "p90 (ms)", "FPS", "peak allocated (MB)", "peak reserved (MB)",

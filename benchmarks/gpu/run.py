@@ -12,6 +12,8 @@ Stages, each with its own time limit and each run whatever happened before it:
   forecast  the whole forecast (encoding included) of the shipped model and the untrained
             small and paper sizes: eager, reference ops, CUDA graph, torch.compile at batch 1,
             eager at batch 64; FPS and peak memory
+  demo      ``t3fast demo`` (what ``make demo`` runs) on the device, its metrics held against the
+            committed CPU run's (``benchmarks/results/wm-test-metrics.json``, the same windows)
   train_ae  a timed burst of ``t3fast train-ae --config paper`` under torchrun (NCCL, AMP)
   train_wm  the same for ``t3fast train-wm --config paper``
 
@@ -166,6 +168,39 @@ def _check_forecast(ctx: Context, d: Path) -> tuple[bool, str]:
     return bool(rows) and not bad, detail
 
 
+#: the CPU run the demo's metrics are held against: the same 40 windows of 10 test scenes
+CPU_DEMO_METRICS = ROOT / "benchmarks" / "results" / "wm-test-metrics.json"
+DEMO_TOLERANCE = 0.05  # mIoU points, Avg mIoU of every row both runs have
+
+
+def _demo_steps(ctx: Context, d: Path) -> list[Step]:
+    argv = [PY, "-m", "t3fast", "demo", "--out", str(d / "demo")]
+    return [Step("demo", argv + (["--scenes", "1", "--stride", "29", "--pictures", "1"] if ctx.quick else []))]
+
+
+def compare_demo(got: dict, want: dict) -> dict[str, float]:
+    """Per row of both ``metrics.json`` mappings with an occupancy score: |Avg mIoU difference|."""
+    return {name: abs(row["miou"]["avg"] - want[name]["miou"]["avg"]) for name, row in got.items()
+            if isinstance(row.get("miou"), dict) and isinstance(want.get(name, {}).get("miou"), dict)}
+
+
+def _check_demo(ctx: Context, d: Path) -> tuple[bool, str]:
+    path = d / "demo" / "metrics.json"
+    if not path.is_file():
+        return False, "no demo/metrics.json"
+    got = json.loads(path.read_text())
+    if ctx.quick:
+        return True, f"{len(got)} rows (a dry run: other windows than the CPU run's, not compared)"
+    differences = compare_demo(got, json.loads(CPU_DEMO_METRICS.read_text()))
+    (d / "comparison.json").write_text(json.dumps(differences, indent=1) + "\n")
+    if not differences:
+        return False, f"no row in common with {CPU_DEMO_METRICS.name}"
+    worst = max(differences, key=differences.get)
+    detail = (f"{len(differences)} rows against the CPU run, largest Avg mIoU difference "
+              f"{differences[worst]:.3f} ({worst}; allowed {DEMO_TOLERANCE})")
+    return differences[worst] <= DEMO_TOLERANCE, detail
+
+
 def _train_overrides(ctx: Context, d: Path) -> list[str]:
     common = ["train.eval_every=0", "train.ckpt_every=0", "train.tensorboard=false", f"train.device={ctx.device}",
               "train.steps=100000", f"train.out_dir={d / 'run'}"]
@@ -242,7 +277,8 @@ STAGES = [
     Stage("build", "CUDA build", 240, 30, _build_steps, _check_json("build_info.json")),
     Stage("tests", "CUDA tests", 150, 45, _test_steps, _check_tests),
     Stage("ops", "op benchmarks", 180, 45, _ops_steps, _check_ops),  # decode in fp32, TF32 and bf16
-    Stage("forecast", "forecasting step", 270, 60, _forecast_steps, _check_forecast),
+    Stage("forecast", "whole forecast", 270, 60, _forecast_steps, _check_forecast),
+    Stage("demo", "t3fast demo", 240, 90, _demo_steps, _check_demo),
     Stage("train_ae", "train-ae burst", 80, 45, _train_ae_steps, _check_train),
     Stage("train_wm", "train-wm burst", 100, 60, _train_wm_steps, _check_train),
 ]

@@ -153,3 +153,45 @@ def test_delta_fuse_backward(benchmark, impl):
         return torch.autograd.grad(outs, inputs, [torch.ones_like(o) for o in outs])
 
     benchmark.pedantic(synchronized(step), rounds=rounds(30), warmup_rounds=3)
+
+
+def _stem_inputs(channels: int, requires_grad: bool = False):
+    """One Occ3D frame of labels, and a stem of ``channels`` outputs over an 8-wide embedding
+    (the shipped encoder's sizes at 8; the papers' at 32 over 16)."""
+    g = torch.Generator().manual_seed(0)
+    labels = torch.randint(0, 18, (1, 200, 200, 16), generator=g, dtype=torch.uint8).to(DEVICE)
+    embed_dim = 8 if channels == 8 else 16
+    embed = torch.randn(18, embed_dim, generator=g).to(DEVICE).requires_grad_(requires_grad)
+    weight = torch.randn(channels, embed_dim, 3, 3, 3, generator=g).to(DEVICE).requires_grad_(requires_grad)
+    return labels, embed, weight
+
+
+def _stem(impl: str, labels, embed, weight):
+    """The stem convolution of the embedded labels: as one label_conv3d over the table of the
+    embedding and the weights (fused), or as the embedding and the conv3d it replaces."""
+    if impl == "reference":
+        return torch.nn.functional.conv3d(torch.nn.functional.embedding(labels.long(), embed)
+                                          .permute(0, 4, 1, 2, 3).contiguous(), weight, padding=1)
+    table = torch.einsum("ceijk,qe->ijkqc", weight, embed).reshape(27, 18, weight.shape[0])
+    return IMPLS["fused"].label_conv3d(labels, table)
+
+
+@pytest.mark.parametrize("channels", [8, 32])
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_label_conv3d(benchmark, impl, channels):
+    """The encoder's stem on a 200 x 200 x 16 frame; the reference is the embedding + conv3d."""
+    benchmark.group = f"label_conv3d stem [1,200,200,16] C={channels}"
+    inputs = _stem_inputs(channels)
+    benchmark.pedantic(synchronized(lambda: _stem(impl, *inputs)), rounds=rounds(10), warmup_rounds=2)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_label_conv3d_backward(benchmark, impl):
+    benchmark.group = "label_conv3d stem fwd+bwd [1,200,200,16] C=32"
+    labels, embed, weight = _stem_inputs(32, requires_grad=True)
+
+    def step():
+        out = _stem(impl, labels, embed, weight)
+        return torch.autograd.grad(out, (embed, weight), torch.ones_like(out))
+
+    benchmark.pedantic(synchronized(step), rounds=rounds(3), warmup_rounds=1)

@@ -150,4 +150,45 @@ inline DeltaFuseShape check_delta_fuse_backward(const at::Tensor& grad_out,
   return {prev.size(0), weight.size(0), prev.size(1), prev.size(2), prev.size(3)};
 }
 
+// Sizes of label_conv3d: labels [B, X, Y, Z], table [27, K, C].
+struct LabelConvShape {
+  int64_t B, X, Y, Z, K, C;
+};
+
+// label_conv3d: integer labels [B, X, Y, Z] (uint8, int32 or int64) and a float table
+// [27, K, C] on the same device.
+inline LabelConvShape check_label_conv3d(const at::Tensor& labels, const at::Tensor& table,
+                                         const char* op) {
+  check_dim(labels, op, "labels", 4, "[B, X, Y, Z]");
+  check_dim(table, op, "table", 3, "[27, K, C]");
+  const auto st = labels.scalar_type();
+  T3FAST_CHECK(st == at::kByte || st == at::kInt || st == at::kLong, op,
+               "labels must be uint8, int32 or int64 class ids, got ", st);
+  check_float_dtype(table, op, "table");
+  check_same_device(table, labels, op, "table", "labels");
+  check_size(table, op, "table", 0, 27, "the 3 x 3 x 3 taps");
+  T3FAST_CHECK(table.size(1) > 0, op, "table must hold at least one class, got ", table.sizes());
+  return {labels.size(0), labels.size(1), labels.size(2), labels.size(3), table.size(1),
+          table.size(2)};
+}
+
+// label_conv3d_backward: grad [B, C, X, Y, Z] of a float dtype and labels [B, X, Y, Z] as for
+// label_conv3d, on one device, classes >= 1 (the rows of the table gradient).
+inline LabelConvShape check_label_conv3d_backward(const at::Tensor& grad, const at::Tensor& labels,
+                                                  int64_t classes, const char* op) {
+  check_dim(grad, op, "grad", 5, "[B, C, X, Y, Z]");
+  check_dim(labels, op, "labels", 4, "[B, X, Y, Z]");
+  const auto st = labels.scalar_type();
+  T3FAST_CHECK(st == at::kByte || st == at::kInt || st == at::kLong, op,
+               "labels must be uint8, int32 or int64 class ids, got ", st);
+  check_float_dtype(grad, op, "grad");
+  check_same_device(labels, grad, op, "labels", "grad");
+  check_size(grad, op, "grad", 0, labels.size(0), "batch, as labels");
+  check_size(grad, op, "grad", 2, labels.size(1), "X, as labels");
+  check_size(grad, op, "grad", 3, labels.size(2), "Y, as labels");
+  check_size(grad, op, "grad", 4, labels.size(3), "Z, as labels");
+  T3FAST_CHECK(classes > 0, op, "classes must be at least 1, got ", classes);
+  return {labels.size(0), labels.size(1), labels.size(2), labels.size(3), classes, grad.size(1)};
+}
+
 }  // namespace t3fast

@@ -34,6 +34,12 @@ TORCH_LIBRARY(t3fast, m) {
   m.def(
       "delta_fuse_backward(Tensor grad_out, Tensor prev, Tensor weight) "
       "-> (Tensor, Tensor, Tensor)");
+  // out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :] (zero outside the
+  // volume): a 3 x 3 x 3 convolution of the class-embedded labels. labels [B, X, Y, Z] -> out
+  // [B, C, X, Y, Z]; table [27, K, C], taps in (dx, dy, dz) order, each from -1 to 1.
+  m.def("label_conv3d(Tensor labels, Tensor table) -> Tensor");
+  // The gradient of label_conv3d's table [27, classes, C] from grad [B, C, X, Y, Z].
+  m.def("label_conv3d_backward(Tensor grad, Tensor labels, int classes) -> Tensor");
 }
 
 namespace {

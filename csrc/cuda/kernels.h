@@ -221,5 +221,15 @@ cudaError_t delta_fuse_backward(const T* grad_out, const T* prev, const T* weigh
                                 int64_t batch, int c_out, int c_in, int64_t pixels, T* grad_prev,
                                 acc_t<T>* grad_weight, acc_t<T>* grad_bias, cudaStream_t stream);
 
+// ------------------------------------------------------------------ label_conv3d
+
+// out [batch, channels, x, y, z] = sum over the 27 taps t (dx, dy, dz each -1..1, dx slowest)
+// of table [27, classes, channels] at (t, labels[b, i + dx, j + dy, k + dz]), taps outside the
+// volume skipped; labels (contiguous, L = uint8_t, int32_t or int64_t) outside [0, classes)
+// contribute nothing (they are not checked on the device: that would need a host sync).
+template <typename T, typename L>
+cudaError_t label_conv3d_forward(const L* labels, const T* table, int64_t batch, int x, int y,
+                                 int z, int classes, int channels, T* out, cudaStream_t stream);
+
 }  // namespace cuda
 }  // namespace t3fast

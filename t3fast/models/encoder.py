@@ -9,7 +9,7 @@ from t3fast.data.classes import FREE, IGNORE
 from t3fast.models.blocks import ResBlock3d, group_norm
 from t3fast.models.config import AutoencoderConfig
 from t3fast.models.triplane import Triplane
-from t3fast.ops import axis_pool
+from t3fast.ops import axis_pool, label_conv3d
 
 
 def check_labels(labels: Tensor, grid: tuple[int, int, int], num_classes: int) -> None:
@@ -36,25 +36,34 @@ class TriplaneEncoder(nn.Module):
     GroupNorm + tanh, which keeps every latent value in (-1, 1) for the forecaster.
     With ``config.latent == "bev"`` only the xy plane is produced (``xz``/``yz`` are None).
 
+    The embedding and the stem convolution run as one :func:`~t3fast.ops.label_conv3d` (27
+    table lookups per voxel) with ``backend="fused"``; ``"reference"`` runs them as the
+    ``nn.Embedding`` and ``nn.Conv3d`` they are (same weights, same results to rounding).
+
     Args:
         config: sizes; the default is the papers' (``AutoencoderConfig()``).
+        backend: ``"fused"`` or ``"reference"``.
 
     Input ``labels [B, X, Y, Z]`` (integer class ids, 255 = ignore, treated as free);
     output a :class:`Triplane` ``xy [B, C, X', Y']``, ``xz [B, C, X', Z']``, ``yz [B, C, Y', Z']``.
     """
 
-    def __init__(self, config: AutoencoderConfig | None = None):
+    def __init__(self, config: AutoencoderConfig | None = None, backend: str = "fused"):
         super().__init__()
+        if backend not in ("fused", "reference"):
+            raise ValueError(f"backend must be 'fused' or 'reference', got {backend!r}")
         cfg = config or AutoencoderConfig()
         self.config = cfg
+        self.backend = backend
         full, half = cfg.full_res_channels, cfg.half_res_channels
         self.embed = nn.Embedding(cfg.num_classes, cfg.embed_dim)
         self.stem = nn.Sequential(
-            nn.Conv3d(cfg.embed_dim, full, 3, padding=1, bias=False), group_norm(full), nn.SiLU()
+            nn.Conv3d(cfg.embed_dim, full, 3, padding=1, bias=False), group_norm(full), nn.SiLU(inplace=True)
         )
         self.full_res = nn.Sequential(*[ResBlock3d(full) for _ in range(cfg.full_res_blocks)])
         self.down = nn.Sequential(
-            nn.Conv3d(full, half, kernel_size=(2, 2, 1), stride=(2, 2, 1), bias=False), group_norm(half), nn.SiLU()
+            nn.Conv3d(full, half, kernel_size=(2, 2, 1), stride=(2, 2, 1), bias=False), group_norm(half),
+            nn.SiLU(inplace=True),
         )
         self.half_res = nn.Sequential(*[ResBlock3d(half) for _ in range(cfg.half_res_blocks)])
         self.proj = nn.Conv3d(half, cfg.channels, 1)
@@ -64,11 +73,21 @@ class TriplaneEncoder(nn.Module):
     def volume(self, labels: Tensor) -> Tensor:
         """The encoded volume ``[B, C, X', Y', Z']`` before pooling."""
         check_labels(labels, self.config.grid, self.config.num_classes)
-        ids = labels.long().masked_fill(labels == IGNORE, FREE)
-        x = self.embed(ids).permute(0, 4, 1, 2, 3)  # [B, E, X, Y, Z]
-        x = self.full_res(self.stem(x))
+        ids = labels.masked_fill(labels == IGNORE, FREE)
+        x = self.full_res(self.stem[1:](self.stem_conv(ids)))
         x = self.half_res(self.down(x))
         return self.proj(x)
+
+    def stem_conv(self, ids: Tensor) -> Tensor:
+        """The stem convolution of the embedded class ids ``[B, X, Y, Z]`` -> ``[B, F, X, Y, Z]``
+        (contiguous: the CPU GroupNorm that follows loses precision on a channels-last input)."""
+        conv = self.stem[0]
+        if self.backend == "reference":
+            return conv(self.embed(ids.long()).permute(0, 4, 1, 2, 3).contiguous())
+        table = torch.einsum("ceijk,qe->ijkqc", conv.weight, self.embed.weight)
+        if ids.dtype not in (torch.uint8, torch.int32, torch.int64):
+            ids = ids.long()
+        return label_conv3d(ids, table.reshape(27, *table.shape[3:]))
 
     def forward(self, labels: Tensor) -> Triplane:
         volume = self.volume(labels)

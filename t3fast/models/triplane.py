@@ -36,3 +36,8 @@ class Triplane(NamedTuple):
         """A history of planes ``[B, T, C, H, W]`` with ``frame`` (planes ``[B, C, H, W]``) added
         as time step ``T``."""
         return Triplane(*(None if h is None else torch.cat([h, f.unsqueeze(1)], dim=1) for h, f in zip(self, frame)))
+
+    @staticmethod
+    def stack(frames: list[Triplane]) -> Triplane:
+        """Planes ``[B, C, H, W]`` of T frames -> one history ``[B, T, C, H, W]``."""
+        return Triplane(*(None if ps[0] is None else torch.stack(ps, dim=1) for ps in zip(*frames)))

@@ -19,7 +19,7 @@ from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
-__all__ = ["axis_pool", "build_info", "delta_fuse", "reference", "triplane_decode"]
+__all__ = ["axis_pool", "build_info", "delta_fuse", "label_conv3d", "reference", "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -153,3 +153,28 @@ def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None 
         _checks.check_delta_fuse(delta, prev, weight, bias)
         return reference.delta_fuse(delta, prev, weight, bias)
     return ops.delta_fuse.default(delta, prev, weight, bias)
+
+
+def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
+    """A 3 x 3 x 3 convolution (zero padding 1) of class-embedded labels, as 27 table lookups
+    per voxel: ``out[b, :, x, y, z] = sum over dx, dy, dz in {-1, 0, 1} of
+    table[9 (dx + 1) + 3 (dy + 1) + dz + 1, labels[b, x + dx, y + dy, z + dz], :]``, taps
+    outside the volume contributing nothing.
+
+    ``conv3d(embedding(labels).permute(0, 4, 1, 2, 3), weight, padding=1)`` is this op with
+    ``table = einsum("ceijk,ke->ijkc", weight, embedding.weight)`` (reshaped to ``[27, K, C]``):
+    ``C`` adds per tap instead of ``E * C`` multiply-adds, and no embedded volume in memory.
+
+    Args:
+        labels: ``[B, X, Y, Z]`` uint8, int32 or int64 class ids in ``[0, K)``; the CPU kernel
+            refuses others, the CUDA kernel does not check them (that would synchronise with
+            the host) and they then contribute nothing.
+        table: ``[27, K, C]`` float32/float64 (on CUDA also float16/bfloat16).
+
+    Returns:
+        ``[B, C, X, Y, Z]`` in the table's dtype. Differentiable with respect to the table.
+    """
+    if ops is None:
+        _checks.check_label_conv3d(labels, table)
+        return reference.label_conv3d(labels, table)
+    return ops.label_conv3d.default(labels, table)

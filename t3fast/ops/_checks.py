@@ -194,3 +194,21 @@ def check_delta_fuse(delta: torch.Tensor, prev: torch.Tensor, weight: torch.Tens
         _check_dim(bias, op, "bias", 1, "[C]")
         _check_like(bias, delta, op, "bias", "delta")
         _check_size(bias, op, "bias", 0, delta.shape[1], "C, as delta.shape[1]")
+
+
+def check_label_conv3d(labels: torch.Tensor, table: torch.Tensor) -> None:
+    """label_conv3d's arguments, as csrc/checks.h checks them (and the CPU kernel the labels)."""
+    op = "label_conv3d"
+    _check_dim(labels, op, "labels", 4, "[B, X, Y, Z]")
+    _check_dim(table, op, "table", 3, "[27, K, C]")
+    _require(labels.dtype in (torch.uint8, torch.int32, torch.int64), op,
+             f"labels must be uint8, int32 or int64 class ids, got {_dtype_name(labels.dtype)}")
+    _check_float(table, op, "table")
+    _check_device(table, labels, op, "table", "labels")
+    _check_size(table, op, "table", 0, 27, "the 3 x 3 x 3 taps")
+    _require(table.shape[1] > 0, op, f"table must hold at least one class, got {list(table.shape)}")
+    if labels.numel() and not labels.is_cuda:  # the CUDA kernel does not check (no host sync)
+        bad = labels[(labels < 0) | (labels >= table.shape[1])]
+        if bad.numel():
+            _require(False, op, f"labels must be class ids in [0, {table.shape[1]}) (the rows of table), "
+                                f"got {bad[0].item()}")

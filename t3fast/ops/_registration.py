@@ -220,6 +220,54 @@ torch.library.register_autograd(
 )
 
 
+# ---------------------------------------------------------------- label_conv3d
+@torch.library.register_fake("t3fast::label_conv3d")
+def _label_conv3d_fake(labels, table):
+    torch._check(labels.dim() == 4, lambda: f"labels must have 4 dims, got {labels.dim()}")
+    torch._check(table.dim() == 3, lambda: f"table must have 3 dims, got {table.dim()}")
+    torch._check(
+        table.device == labels.device,
+        lambda: f"t3fast.label_conv3d: table must be on the same device as labels ({labels.device}), "
+        f"got {table.device}",
+    )
+    return table.new_empty((labels.shape[0], table.shape[2], *labels.shape[1:]))
+
+
+def _label_conv3d_setup(ctx, inputs, output):
+    labels, table = inputs
+    ctx.classes = table.shape[1]
+    ctx.save_for_backward(labels)
+
+
+def _label_conv3d_backward(ctx, grad):
+    (labels,) = ctx.saved_tensors
+    return None, ops.label_conv3d_backward.default(grad, labels, ctx.classes)
+
+
+torch.library.register_autograd("t3fast::label_conv3d", _label_conv3d_backward, setup_context=_label_conv3d_setup)
+
+
+@torch.library.register_fake("t3fast::label_conv3d_backward")
+def _label_conv3d_backward_fake(grad, labels, classes):
+    torch._check(grad.dim() == 5, lambda: f"grad must have 5 dims, got {grad.dim()}")
+    return grad.new_empty((27, classes, grad.shape[1]))
+
+
+def _label_conv3d_backward_setup(ctx, inputs, output):
+    _, labels, _ = inputs
+    ctx.save_for_backward(labels)
+
+
+def _label_conv3d_backward_backward(ctx, grad_table):
+    """The table gradient is linear in the output gradient: its own gradient is the forward."""
+    (labels,) = ctx.saved_tensors
+    return ops.label_conv3d.default(labels, grad_table), None, None
+
+
+torch.library.register_autograd("t3fast::label_conv3d_backward", _label_conv3d_backward_backward,
+                                setup_context=_label_conv3d_backward_setup)
+
+
 # ---------------------------------------------------------------- autocast
 _autocast_lib = torch.library.Library("t3fast", "IMPL")
 
@@ -255,5 +303,5 @@ def _register_autocast(op: str, device_type: str) -> None:
 # keeping the planes and query points in their own precision (as grid_sample, which autocast
 # runs in float32).
 for _op, _device_type in (("delta_fuse", "cuda"), ("delta_fuse", "cpu"), ("axis_pool", "cpu"),
-                          ("triplane_decode", "cpu")):
+                          ("triplane_decode", "cpu"), ("label_conv3d", "cpu")):
     _register_autocast(_op, _device_type)

@@ -128,3 +128,14 @@ def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None 
     if bias is not None:
         out = out + bias[None, :, None, None]
     return out
+
+
+def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
+    """``out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :]`` (nothing from
+    outside the volume): ``labels [B, X, Y, Z]`` (class ids in ``[0, K)``), ``table [27, K, C]``
+    -> ``[B, C, X, Y, Z]``; as a convolution of the one-hot labels."""
+    classes, channels = table.shape[1:]
+    one_hot = F.one_hot(labels.long(), classes).permute(0, 4, 1, 2, 3).to(table.dtype)
+    weight = table.reshape(3, 3, 3, classes, channels).permute(4, 3, 0, 1, 2)
+    return F.conv3d(one_hot, weight, padding=1)
+

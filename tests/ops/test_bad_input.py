@@ -7,7 +7,7 @@ import re
 import pytest
 import torch
 
-from t3fast.ops import axis_pool, delta_fuse, triplane_decode
+from t3fast.ops import axis_pool, delta_fuse, label_conv3d, triplane_decode
 
 from .test_triplane_decode import make_inputs
 
@@ -124,3 +124,29 @@ def test_axis_pool_rejects(volume, pattern):
 def test_delta_fuse_rejects(args, pattern):
     with pytest.raises(RuntimeError, match=r"t3fast\.delta_fuse: .*" + pattern):
         delta_fuse(*args)
+
+
+@pytest.mark.parametrize(
+    "labels, table, pattern",
+    [
+        (torch.zeros(2, 3, 4, dtype=torch.uint8), torch.randn(27, 5, 4),
+         r"labels must have 4 dims \[B, X, Y, Z\], got 3 dims"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.uint8), torch.randn(27, 5),
+         r"table must have 3 dims \[27, K, C\], got 2 dims"),
+        (torch.zeros(1, 3, 4, 2), torch.randn(27, 5, 4), r"labels must be uint8, int32 or int64 class ids, got Float"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.int16), torch.randn(27, 5, 4),
+         r"labels must be uint8, int32 or int64 class ids, got Short"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.uint8), torch.randn(26, 5, 4),
+         r"table\.shape\[0\] \(the 3 x 3 x 3 taps\) must be 27, got 26"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.uint8), torch.randn(27, 0, 4), r"table must hold at least one class"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.uint8), torch.randn(27, 5, 4).half(),
+         r"table must be float32 or float64 on CPU, got Half"),
+        (torch.full((1, 3, 4, 2), 5, dtype=torch.uint8), torch.randn(27, 5, 4),
+         r"labels must be class ids in \[0, 5\) \(the rows of table\), got 5"),
+        (torch.full((1, 3, 4, 2), -2, dtype=torch.int64), torch.randn(27, 5, 4),
+         r"labels must be class ids in \[0, 5\) \(the rows of table\), got -2"),
+    ],
+)
+def test_label_conv3d_rejects(labels, table, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.label_conv3d: .*" + pattern):
+        label_conv3d(labels, table)

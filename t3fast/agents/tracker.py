@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE
+from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, in_classes
 from t3fast.models.ego_motion import compose
 
 # metres an agent's centroid may move between two frames (0.5 s) to be matched: 16 m/s. At 4 m,
@@ -45,7 +45,7 @@ def bev_components(mask: Tensor) -> tuple[Tensor, int]:
     # labels are 1 + the flat index of a cell of the same component (exact in float32 below 2^24)
     labels = (torch.arange(1, nx * ny + 1, dtype=torch.float32, device=mask.device).view(nx, ny) * keep)
     while True:
-        pooled = F.max_pool2d(labels[None, None], 3, stride=1, padding=1)[0, 0] * keep
+        pooled = _max_3x3(labels) * keep
         flat = pooled.flatten()
         jumped = torch.maximum(flat, flat[(flat.long() - 1).clamp(min=0)] * keep.flatten()).view(nx, ny)
         if torch.equal(jumped, labels):
@@ -57,12 +57,21 @@ def bev_components(mask: Tensor) -> tuple[Tensor, int]:
     return inverse, int(inverse.max())
 
 
+def _max_3x3(values: Tensor) -> Tensor:
+    """The maximum of each cell's 3x3 neighbourhood of non-negative ``values`` ``[X, Y]`` (zero
+    outside): ``max_pool2d(values, 3, 1, 1)`` as two separable passes, 13x faster on one
+    200 x 200 plane on the CPU."""
+    p = F.pad(values, (1, 1, 1, 1))
+    rows = torch.maximum(torch.maximum(p[:-2], p[1:-1]), p[2:])
+    return torch.maximum(torch.maximum(rows[:, :-2], rows[:, 1:-1]), rows[:, 2:])
+
+
 def frame_agents(frame: Tensor, classes: Tensor) -> dict[str, Tensor]:
     """The agents of a frame ``[X, Y, Z]``: their voxels (``ijz`` ``[V, 3]``, ``label`` ``[V]``,
     ``component`` ``[V]`` 0-based), the component map ``ids`` ``[X, Y]`` (0 off the agents, else
     1 + component) and, per connected BEV component of the columns holding an agent voxel, its
     majority class ``cls`` ``[n]`` and column centroid ``centroid`` ``[n, 2]`` (cells)."""
-    is_agent = torch.isin(frame, classes)
+    is_agent = in_classes(frame, classes)
     ids, n = bev_components(is_agent.any(-1))
     ijz = is_agent.nonzero()
     label = frame[is_agent].long()

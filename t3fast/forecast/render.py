@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from t3fast.agents.boxes import draw_agent_boxes
 from t3fast.agents.tracker import move_agents
-from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
+from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, in_classes
 from t3fast.forecast.records import AgentMoves, Past, Scene
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import frame_queries, unwarp_sequence
@@ -49,9 +49,9 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
     sidewalks go on) and everything else is free (continuing walls, trees and cars past the
     edge cost 6.5 IoU points on validation windows; ground alone gained 1.6).
     """
-    agents = _AGENTS.to(decoded.device)
-    agent_change = (decoded != reference) & (torch.isin(decoded, agents) | torch.isin(reference, agents))
-    editable = torch.isin(moved, agents) | (moved == FREE)
+    agents = _AGENTS
+    agent_change = (decoded != reference) & (in_classes(decoded, agents) | in_classes(reference, agents))
+    editable = in_classes(moved, agents) | (moved == FREE)
     inside = torch.where(agent_change & editable, decoded, moved)
     return torch.where(moved == IGNORE, beyond_present(decoded), inside)
 
@@ -59,7 +59,7 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
 def beyond_present(decoded: Tensor) -> Tensor:
     """What a forecast shows beyond the observed present grid: its decoded flat ground (roads
     and sidewalks go on), everything else free."""
-    return torch.where(torch.isin(decoded, _GROUND.to(decoded.device)), decoded, torch.full_like(decoded, FREE))
+    return torch.where(in_classes(decoded, _GROUND), decoded, torch.full_like(decoded, FREE))
 
 
 class DecodeFrames:
@@ -135,8 +135,8 @@ class KeepObservedStatic:
         ``decoded`` ``[N]``, except where those or the observed labels ``observed`` ``[N]`` show an
         agent, where the present triplane ``planes`` (batch 1) is decoded at ``points``
         ``[1, N, 3]`` instead."""
-        agents = _AGENTS.to(decoded.device)
-        need = torch.isin(decoded, agents) | torch.isin(observed, agents)
+        agents = _AGENTS
+        need = in_classes(decoded, agents) | in_classes(observed, agents)
         reference = decoded.clone()
         if bool(need.any()):
             reference[need] = self.decoder.predict(planes, points[:, need]).view(-1)

@@ -1,8 +1,8 @@
 """The whole forecast of one window at batch 1, what ``model.forecast`` does from the past
 labels and poses to the future labels and plan: encoding the five past frames, the agents (the
 tracker, the box fit), the forecaster, the planner, the render. The shipped weights, a
-validation window, the compiled operators versus their pure-PyTorch references (decoder and
-delta fusion); FPS = 1 / time. ``wm-small`` is the shipped model, ``wm-small-own-frames`` the
+validation window, the compiled operators versus their pure-PyTorch references (the encoder's
+stem, the decoder and the delta fusion); FPS = 1 / time. ``wm-small`` is the shipped model, ``wm-small-own-frames`` the
 papers' formulation (the Delta forecaster, every frame in its own ego frame)."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from t3fast.pretrained import load_world_model
 def test_whole_forecast(benchmark, impl, name, monkeypatch):
     benchmark.group = f"whole forecast ({name}, batch 1, encoding included)"
     model = load_world_model(name)
-    model.decoder.backend = impl
+    model.decoder.backend = model.encoder.backend = impl
     fuse = delta_fuse if impl == "fused" else reference.delta_fuse
     for module in (forecaster_module, flow_module):
         monkeypatch.setattr(module, "delta_fuse", fuse)

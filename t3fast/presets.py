@@ -129,8 +129,7 @@ PRESETS: dict[str, Callable[[], RunConfig]] = {
                                 eval_every=2000, ckpt_every=1000),
     # the tracker's motion corrected by a head that reads the scene, drawn in label space (each
     # agent as the box fitted to its past frames); the route planner
-    "wm-small": lambda: _stage2_flow("wm-small", tracker_prior=True, motion_context=True, render_agents=True,
-                                     agent_boxes=True, planner="route"),
+    "wm-small": lambda: _stage2_flow("wm-small", render_agents=True, agent_boxes=True, planner="route"),
     # the papers' Delta forecaster (attention per scale, autoregressive), ego-aligned
     "wm-small-delta": lambda: _stage2_small("wm-small-delta"),
     # the papers' formulation: every frame in its own ego frame

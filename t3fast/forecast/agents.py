@@ -1,8 +1,8 @@
 """Stage 2: the present's agents as the classical tracker sees them (:mod:`t3fast.agents`).
 
-What a model reads of its agents is fixed by its config: a flow forecaster with a tracker prior
-starts from the tracker's velocities (measured in the last three past frames moved into the
-present frame), and a model that draws its agents as boxes fits each agent's box to its
+What a model reads of its agents is fixed by its config: a flow forecaster starts from the
+tracker's velocities (measured in the last three past frames moved into the present frame),
+and a model that draws its agents as boxes fits each agent's box to its
 columns in every past frame."""
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ class FindAgents:
 
     Args:
         plane_shape: ``(H, W)`` of the xy plane the velocities are pooled on.
-        velocities: measure the tracker's velocities (a forecaster with a tracker prior).
+        velocities: measure the tracker's velocities (the flow forecaster reads them).
         boxes: fit the agents' boxes (a model that draws them).
     """
 

@@ -95,11 +95,10 @@ def build_pipeline(layout: Layout, encoder: TriplaneEncoder, forecaster: nn.Modu
     """The stages of a world model with these networks and ``layout``."""
     check_layout(layout, forecaster, box_motion)
     flow = isinstance(forecaster, FlowTriplaneForecaster)
-    tracker_prior = flow and forecaster.tracker_prior
     render = choose_render(layout, decoder)
     return ForecastPipeline(
         encode=EncodePast(encoder, layout.ego_aligned),
-        agents=FindAgents(encoder.config.plane_shape[:2], tracker_prior, layout.agent_boxes),
+        agents=FindAgents(encoder.config.plane_shape[:2], flow, layout.agent_boxes),
         scene=FlowScene(forecaster) if flow else DeltaScene(forecaster),
         motion=MoveAgents(box_motion) if isinstance(render, DrawAgents) else None,
         plan=RoutePlan(planner) if isinstance(planner, RoutePlanner) else PhiActPlan(planner),

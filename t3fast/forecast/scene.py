@@ -18,7 +18,7 @@ class FlowScene:
 
     @torch.no_grad()
     def __call__(self, past: Past, agents: Agents, steps: int) -> Scene:
-        futures, changes, displacements = self.forecaster(past.planes, steps, 0, agents.velocity, motion=True)
+        futures, changes, displacements = self.forecaster(past.planes, agents.velocity, steps)
         return Scene(futures, changes, displacements)
 
 

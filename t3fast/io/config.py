@@ -135,6 +135,9 @@ def _build(cls: type[T], raw: Any, prefix: str) -> T:
         return raw
     if not isinstance(raw, Mapping):
         raise ConfigError(f"'{prefix or cls.__name__}' must be a mapping of {cls.__name__} fields, got {raw!r}")
+    upgrade = getattr(cls, "upgrade", None)
+    if upgrade is not None:  # keys of earlier versions, e.g. in a checkpoint's config
+        raw = upgrade(raw)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = [k for k in raw if k not in fields]
     if unknown:

@@ -102,6 +102,10 @@ class AutoencoderConfig:
         return self.channels * (x * y if self.latent == "bev" else x * y + x * z + y * z)
 
 
+#: keys of earlier versions that :meth:`WorldModelConfig.upgrade` drops
+REMOVED_FLOW_SWITCHES = ("tracker_prior", "motion_context")
+
+
 @dataclass
 class WorldModelConfig:
     """Sizes of the forecaster and the planner (the autoencoder has its own config).
@@ -120,11 +124,8 @@ class WorldModelConfig:
     forecaster_layers: int = 1
     max_tokens: int = 1024  # full attention at scales with history * h * w <= this
     flow_widths: list[int] = field(default_factory=lambda: [16, 32, 48, 64, 96])  # the flow forecaster's UNet
-    flow_scale: float = 2.0  # plane cells per unit of its displacement output, per step
+    flow_scale: float = 2.0  # plane cells per unit of the velocities and corrections its networks read and predict
     match_radius: int = 6  # its matching costs look this many plane cells around each cell
-    tracker_prior: bool = False  # it corrects the tracker's agent velocities instead of finding motion alone
-    # its motion head reads the scene around each agent, not only the velocities (t3fast.models.motion_head)
-    motion_context: bool = False
     # draw the observed agents moved along the flow forecaster's displacements (label space)
     # instead of decoding them from the forecast latent (see T3Former._render_agents)
     render_agents: bool = False
@@ -156,6 +157,20 @@ class WorldModelConfig:
     # ego-aligned forecasts keep the present frame's observed static world (see
     # t3fast.models.world_model.observed_static); False: decoded frames only
     static_from_present: bool = True
+
+    @staticmethod
+    def upgrade(raw: dict) -> dict:
+        """A config of an earlier version (a checkpoint's, or overrides) in this version's keys.
+        ``tracker_prior`` and ``motion_context`` switched the flow forecaster's tracker prior and
+        the scene its motion head reads; the flow forecaster now always has both, so the keys
+        are dropped, and switching either off for it is refused."""
+        raw = dict(raw)
+        for key in REMOVED_FLOW_SWITCHES:
+            if key in raw and str(raw.pop(key)).strip().lower() in ("false", "0", "no", "off") and \
+                    raw.get("forecaster") == "flow":
+                raise ConfigError(f"'{key}=false' is no longer supported: the flow forecaster always starts from the "
+                                  "tracker's velocities and corrects them with a head that reads the scene")
+        return raw
 
     def __post_init__(self) -> None:
         if self.forecaster not in ("delta", "flow"):
@@ -205,11 +220,8 @@ class WorldModelConfig:
                               "render_agents=true")
         if self.box_motion is True and self.agent_boxes is not True:
             raise ConfigError("'box_motion' moves the fitted boxes 'agent_boxes' draws: it needs agent_boxes=true")
-        if self.motion_context is True and not self.tracker_prior:
-            raise ConfigError("'motion_context' gives the tracker prior's motion head the scene: it needs "
-                              "tracker_prior=true")
-        for key in ("predict_delta", "ego_aligned", "static_from_present", "tracker_prior", "render_agents",
-                    "agent_boxes", "box_motion", "motion_context"):
+        for key in ("predict_delta", "ego_aligned", "static_from_present", "render_agents", "agent_boxes",
+                    "box_motion"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"'{key}' must be true or false, got {getattr(self, key)!r}")
 

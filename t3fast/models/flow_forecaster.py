@@ -6,14 +6,19 @@ forecaster (:mod:`t3fast.models.forecaster`) has to rebuild a moved car cell by 
 attention; trained on a 2-core budget it learnt nothing that beat its initialisation. Here
 motion is represented as motion, the way a tracker does it:
 
-* one UNet reads the history of xy planes, their differences and *matching costs* (how well
-  each present cell matches each cell around it in the previous frame, and the previous in
-  the one before: :func:`~t3fast.models.plane_warp.matching_costs`). The best match shows
-  where a cell's content came from, so the motion estimate is local and does not depend on
-  what the content is;
-* for every future step ``k`` it predicts, at each *present* cell, where that cell's content
-  will be (a forward displacement, supervised directly by the agents' boxes in training)
-  and a change Delta;
+* the motion starts from the classical tracker: its agent velocities (measured in the last
+  three observed frames; ``v`` the mean of the last step's and the chained two-step velocity,
+  which moved agents better than the last step alone) give step ``k`` the displacement
+  ``(k + 1) v`` at each *present* cell of a tracked agent, and a *motion head*
+  (:class:`~t3fast.models.motion_head.ContextMotionHead`, which reads the velocities and the
+  scene around each agent) predicts a correction there, so the static world stays exactly
+  still. Untrained (its last layer is zero) the forecaster is this tracker in the latent:
+  training has to improve on it, not rediscover it. A displacement head of the UNet instead,
+  or a per-cell correction from it, fitted the training windows and lowered validation;
+* one UNet reads the history of xy planes, their differences, *matching costs* (how well each
+  present cell matches each cell around it in the previous frame, and the previous in the one
+  before: :func:`~t3fast.models.plane_warp.matching_costs`) and the velocities, and predicts a
+  change Delta for every future step (zero at the start);
 * the present plane is moved accordingly: the displacements of the moving cells are splatted
   forward (:func:`~t3fast.models.plane_warp.splat_plane`) into a backward flow at the cells
   they land on, which is one bilinear lookup of the present plane
@@ -21,24 +26,10 @@ motion is represented as motion, the way a tracker does it:
   The cells a moving agent leaves and nothing lands on take a learned fill (what is under a
   car: road), and ``xy_k = delta_fuse(Delta_k, moved_k)`` corrects the rest.
 
-Predicting at the present cells is what makes this learnable: the car's motion is decided
-where the car is, not 20 cells ahead at the place it will reach in 3 s (a backward flow
-predicted there fitted the training windows but generalised poorly). All six steps come from
-one pass (not autoregressive: six times cheaper, and no compounding of a step's errors
-through the next step's input). The displacements start near zero and Delta at zero: the
-untrained forecaster is the present frame, but the displacement head is not exactly zero, so
-the body receives gradients from the first step on.
-
-With the tracker prior (``tracker_prior``, the shipped design) the motion is not found from
-scratch: the classical tracker's agent velocities (measured in the last three observed frames;
-``v`` the mean of the last step's and the chained two-step velocity, which moved agents better
-than the last step alone) give step ``k`` the displacement ``(k + 1) v``, and a *motion head*
-(a per-cell MLP of those velocities, or with ``motion_context`` one that also reads the scene
-around each agent) predicts a correction on the tracked agents' cells only, so the static world stays
-exactly still. It learns what the velocities say about the future (how a noisy last-step
-velocity and the two-step mean combine, how agents brake and pull away); a per-cell correction
-from the UNet instead fitted the training windows and lowered validation. The UNet then predicts
-Delta only.
+Motion is decided where the car is, not 20 cells ahead at the place it will reach in 3 s (a
+backward flow predicted there fitted the training windows but generalised poorly). All six
+steps come from one pass (not autoregressive: six times cheaper, and no compounding of a
+step's errors through the next step's input).
 
 The xz and yz planes (height profiles pooled along y and x) are carried from the present: the
 true future xy plane with the present xz/yz keeps 98 % of what the true future triplane gains
@@ -55,7 +46,7 @@ from torch.nn import functional as F
 
 from t3fast.agents.tracker import VELOCITY_CHANNELS, blended_velocity
 from t3fast.models.blocks import group_norm
-from t3fast.models.motion_head import ContextMotionHead, cell_motion_head
+from t3fast.models.motion_head import ContextMotionHead
 from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
 from t3fast.ops import delta_fuse
@@ -134,27 +125,20 @@ def move_plane(present: Tensor, displacement: Tensor, fill: Tensor) -> Tensor:
 
 
 class FlowTriplaneForecaster(nn.Module):
-    """Past planes -> the future triplanes of all ``steps`` steps at once.
+    """Past planes and the tracker's agent velocities -> the future triplanes of all ``steps``
+    steps at once.
 
     Args:
         channels: triplane channels C.
         plane_shape: ``(X', Y', Z')``.
         widths: channels of the UNet's levels.
-        history: past frames read (the present included).
+        history: past frames read (the present included; at least the 3 the velocities come from).
         steps: future steps predicted.
-        flow_scale: plane cells per unit of the displacement head's output per step (step
-            ``k``'s displacement is ``flow_scale * (k + 1) * output``: a velocity-like value).
+        flow_scale: plane cells per unit of the velocities the networks read and of the motion
+            head's correction, per step.
         match_radius: the matching costs compare each cell with the cells up to this many
             cells away in the previous frame (the fastest agents move ~7 cells a step).
         bev: the latent has only the xy plane.
-        tracker_prior: start from the tracker's motion: the agents' velocities measured in the
-            last three observed frames (:func:`~t3fast.agents.tracker.tracker_velocities`,
-            ``velocity`` of :meth:`predict`) are an input, and step ``k``'s displacement is
-            ``(k + 1)`` times their blend (:func:`~t3fast.agents.tracker.blended_velocity`)
-            plus a correction that the *motion head*
-            (a per-cell MLP of the velocities, zero where no agent was measured) predicts; the
-            UNet then predicts Delta only. Untrained, such a forecaster is this tracker in the
-            latent; training has to improve on it, not rediscover it.
     """
 
     def __init__(
@@ -167,64 +151,47 @@ class FlowTriplaneForecaster(nn.Module):
         flow_scale: float = 2.0,
         match_radius: int = 6,
         bev: bool = False,
-        tracker_prior: bool = False,
-        motion_context: bool = False,
     ):
         super().__init__()
-        if history < 2:
-            raise ValueError(f"FlowTriplaneForecaster needs at least 2 history frames to see motion, got {history}")
+        if history < 3:
+            raise ValueError(f"FlowTriplaneForecaster reads the 3 history frames the tracker's velocities come "
+                             f"from, got {history}")
         self.channels, self.history, self.steps, self.flow_scale, self.bev = channels, history, steps, flow_scale, bev
-        self.match_radius, self.match_pairs = match_radius, min(2, history - 1)
-        self.tracker_prior = tracker_prior
-        if tracker_prior and history < 3:
-            raise ValueError(f"FlowTriplaneForecaster(tracker_prior=True) reads 3 history frames, got {history}")
+        self.match_radius, self.match_pairs = match_radius, 2
         costs = self.match_pairs * (2 * match_radius + 1) ** 2
         self.match_stem = nn.Sequential(nn.Conv2d(costs, MATCH_FEATURES, 1), nn.SiLU())  # compress before the 3x3 convs
-        inputs = (2 * history - 1) * channels + MATCH_FEATURES + VELOCITY_CHANNELS * tracker_prior
-        # with the tracker prior the motion head moves the agents (a per-cell correction from the
-        # UNet fitted the training windows and lowered validation), and the UNet predicts Delta
-        self.flow_outputs = 0 if tracker_prior else 2
-        self.unet = FlowUNet(inputs, steps * (self.flow_outputs + channels), widths)
-        head = self.unet.head
-        with torch.no_grad():  # Delta starts at zero, the displacement near zero (but not exactly: see above)
-            head.weight.zero_()
-            head.bias.zero_()
-            head.weight.view(steps, self.flow_outputs + channels, -1)[:, : self.flow_outputs].normal_(std=1e-3)
-        if motion_context and not tracker_prior:
-            raise ValueError("FlowTriplaneForecaster(motion_context=True) corrects the tracker: it needs tracker_prior")
-        self.motion_context = motion_context
-        if tracker_prior:
-            self.reset_motion_head()
+        inputs = (2 * history - 1) * channels + MATCH_FEATURES + VELOCITY_CHANNELS
+        self.unet = FlowUNet(inputs, steps * channels, widths)
+        with torch.no_grad():  # Delta starts at zero
+            self.unet.head.weight.zero_()
+            self.unet.head.bias.zero_()
+        self.reset_motion_head()
         # the 1x1 fusion is the identity plus a learned part that starts at 0 (as in the Delta forecaster)
         self.fuse_residual = nn.Parameter(torch.zeros(channels, channels))
         self.fuse_bias = nn.Parameter(torch.zeros(channels))
         self.fill = nn.Parameter(torch.zeros(channels))
 
-    def predict(self, past: Triplane, velocity: Tensor | None = None) -> tuple[list[Triplane], Tensor, Tensor]:
-        """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) and, with
-        ``tracker_prior``, the agents' velocities ``[B, 4, H, W]`` (plane cells per step) -> (the
-        ``steps`` future triplanes, forward displacements ``[B, steps, 2, H, W]`` of the present
-        cells in plane cells, Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
+    def predict(self, past: Triplane, velocity: Tensor) -> tuple[list[Triplane], Tensor, Tensor]:
+        """Past planes ``[B, T, C, H, W]`` (present last, ``T >= history``) and the agents'
+        velocities ``[B, 4, H, W]`` (plane cells per step,
+        :func:`~t3fast.agents.tracker.tracker_velocities`) -> (the ``steps`` future triplanes,
+        forward displacements ``[B, steps, 2, H, W]`` of the present cells in plane cells,
+        Deltas ``[B, steps, C, H, W]`` of the xy plane)."""
         xy = past.xy[:, -self.history :]
         b, t, c, h, w = xy.shape
         if t < self.history:
             raise ValueError(f"FlowTriplaneForecaster: {self.history} history frames needed, got {t}")
-        if self.tracker_prior and (velocity is None or velocity.shape != (b, VELOCITY_CHANNELS, h, w)):
+        if velocity is None or velocity.shape != (b, VELOCITY_CHANNELS, h, w):
             got = None if velocity is None else list(velocity.shape)
-            raise ValueError(f"FlowTriplaneForecaster(tracker_prior=True) needs the agents' velocities "
-                             f"[{b}, {VELOCITY_CHANNELS}, {h}, {w}] (T3Former.agent_velocity), got {got}")
+            raise ValueError(f"FlowTriplaneForecaster needs the agents' velocities [{b}, {VELOCITY_CHANNELS}, {h}, "
+                             f"{w}] (t3fast.forecast.agents.measured_velocities), got {got}")
+        velocity = velocity.to(xy.dtype)
         costs = torch.cat([matching_costs(xy[:, -1 - p], xy[:, -2 - p], self.match_radius)
                            for p in range(self.match_pairs)], dim=1)
-        inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs)]
-        if self.tracker_prior:
-            velocity = velocity.to(xy.dtype)
-            inputs.append(velocity / self.flow_scale)
-        out = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, self.flow_outputs + c, h, w)
-        if self.tracker_prior:
-            displacements = self.tracked_motion(velocity, xy[:, -1], xy[:, -2])
-        else:
-            displacements = out[:, :, :2] * self.flow_scale * _step_numbers(self.steps, out)
-        deltas = out[:, :, self.flow_outputs :]
+        inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs),
+                  velocity / self.flow_scale]
+        deltas = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, c, h, w)
+        displacements = self.tracked_motion(velocity, xy[:, -1], xy[:, -2])
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
         futures = []
@@ -235,41 +202,34 @@ class FlowTriplaneForecaster(nn.Module):
         return futures, displacements, deltas
 
     def reset_motion_head(self) -> None:
-        """A new motion head (``tracker_prior``): its correction starts at 0, so the forecaster
-        moves the agents exactly as the tracker does."""
-        self.motion_head = (ContextMotionHead(self.channels, self.steps) if self.motion_context
-                            else cell_motion_head(self.steps))
+        """A new motion head: its correction starts at 0, so the forecaster moves the agents
+        exactly as the tracker does."""
+        self.motion_head = ContextMotionHead(self.channels, self.steps)
 
     def tracked_motion(self, velocity: Tensor, present: Tensor, previous: Tensor) -> Tensor:
-        """With ``tracker_prior``: the forward displacements ``[B, steps, 2, H, W]`` (plane cells)
-        of the present cells, step ``k`` ``(k + 1)`` times the tracker's blended velocity plus the
-        motion head's correction on the tracked agents' cells (0 elsewhere), from the velocities
+        """The forward displacements ``[B, steps, 2, H, W]`` (plane cells) of the present cells:
+        step ``k`` ``(k + 1)`` times the tracker's blended velocity plus the motion head's
+        correction on the tracked agents' cells (0 elsewhere), from the velocities
         ``[B, 4, H, W]`` and the present and previous xy planes ``[B, C, H, W]``."""
         b, _, h, w = velocity.shape
         measured = (velocity != 0).any(1, keepdim=True).unsqueeze(1)  # [B, 1, 1, H, W]: cells of tracked agents
         scaled = velocity / self.flow_scale
-        if self.motion_context:
-            correction = self.motion_head(scaled, present, previous, measured[:, 0].to(present.dtype))
-        else:
-            correction = self.motion_head(scaled)
+        correction = self.motion_head(scaled, present, previous, measured[:, 0].to(present.dtype))
         correction = correction.view(b, self.steps, 2, h, w) * measured
         return (blended_velocity(velocity).unsqueeze(1) + correction * self.flow_scale) * _step_numbers(self.steps,
                                                                                                         velocity)
 
-    def forward(
-        self, past: Triplane, steps: int | None = None, first_step: int = 0, velocity: Tensor | None = None,
-        motion: bool = False,
-    ) -> tuple[list[Triplane], list[Triplane]] | tuple[list[Triplane], list[Triplane], Tensor]:
-        """The forecaster interface of :class:`T3Former`: (the first ``steps`` future
-        triplanes, their changes from the present) and, with ``motion``, their forward
-        displacements ``[B, steps, 2, H, W]``. All steps come from the observed history, so
-        rollouts start at the present (``first_step`` 0). ``velocity``: see :meth:`predict`."""
+    def forward(self, past: Triplane, velocity: Tensor, steps: int | None = None
+                ) -> tuple[list[Triplane], list[Triplane], Tensor]:
+        """The first ``steps`` (default all) future triplanes, their changes from the present
+        and their forward displacements ``[B, steps, 2, H, W]``; the arguments as for
+        :meth:`predict`. All steps come from the observed history at once."""
         steps = self.steps if steps is None else steps
-        if first_step != 0 or not 1 <= steps <= self.steps:
+        if not 1 <= steps <= self.steps:
             raise ValueError(f"FlowTriplaneForecaster predicts future steps 0..{self.steps - 1} from the observed "
-                             f"history at once; asked for {steps} steps from step {first_step}")
+                             f"history at once; asked for {steps} steps")
         futures, displacements, _ = self.predict(past, velocity)
         futures = futures[:steps]
         present = past.map(lambda p: p[:, -1])
         changes = [Triplane(*(None if f is None else f - p for f, p in zip(fut, present))) for fut in futures]
-        return (futures, changes, displacements[:, :steps]) if motion else (futures, changes)
+        return futures, changes, displacements[:, :steps]

@@ -53,7 +53,7 @@ class T3Former(nn.Module):
         forecaster = FlowTriplaneForecaster(
             channels=autoencoder.channels, plane_shape=autoencoder.plane_shape, widths=world.flow_widths,
             history=world.history, steps=world.steps, flow_scale=world.flow_scale, match_radius=world.match_radius,
-            bev=bev, tracker_prior=world.tracker_prior, motion_context=world.motion_context,
+            bev=bev,
         ) if world.forecaster == "flow" else DeltaTriplaneForecaster(
             channels=autoencoder.channels, plane_shape=autoencoder.plane_shape,
             widths=world.forecaster_widths[: world.scales], history=world.history, steps=world.steps,

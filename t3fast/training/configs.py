@@ -279,7 +279,7 @@ class MotionConfig:
     """Everything ``t3fast train-motion`` needs: the motion head of a trained world model's flow
     forecaster trained anew on its own, on many windows; the rest stays as it is."""
 
-    world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (a flow forecaster with tracker_prior)
+    world_model: str = "wm-small"  # shipped name or stage-2 checkpoint (a flow forecaster)
     min_flow: float = 0.5  # plane cells an agent moves in a step to count as moving
     parked_weight: float = 1.0  # x the error of seen agents that did not move (a parked car must stand still)
     # + precision_weight x mean over moving agents of 1 - exp(-d^2 / 2 s^2), s = precision_scale

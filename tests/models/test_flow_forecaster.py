@@ -186,46 +186,44 @@ def _past(b: int = 2, t: int = 5, c: int = 4, h: int = 20, w: int = 16, z: int =
     return Triplane(torch.randn(b, t, c, h, w), torch.randn(b, t, c, h, z), torch.randn(b, t, c, w, z))
 
 
-def test_untrained_forecaster_is_the_present_frame_and_its_body_gets_gradients():
+def test_untrained_forecaster_without_tracked_agents_is_the_present_frame():
     torch.manual_seed(0)
     f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3)
     past = _past()
-    futures, displacements, deltas = f.predict(past)
+    futures, displacements, deltas = f.predict(past, torch.zeros(2, 4, 20, 16))
     assert len(futures) == 3 and displacements.shape == (2, 3, 2, 20, 16) and deltas.shape == (2, 3, 4, 20, 16)
-    assert 0 < displacements.abs().max() < 0.1 and deltas.abs().max() == 0  # a tenth of a cell at most
-    assert torch.allclose(futures[0].xy, past.xy[:, -1], atol=0.1)  # step 0 moves at most 0.02 cells
-    for k, fut in enumerate(futures):
-        # the present moved by step k's displacement (Delta 0, the fusion the identity)
-        assert torch.allclose(fut.xy, move_plane(past.xy[:, -1], displacements[:, k], f.fill), atol=1e-5)
+    assert displacements.abs().max() == 0 and deltas.abs().max() == 0
+    for fut in futures:  # nothing moves, Delta 0, the fusion the identity
+        assert torch.allclose(fut.xy, past.xy[:, -1], atol=1e-6)
         assert torch.equal(fut.xz, past.xz[:, -1]) and torch.equal(fut.yz, past.yz[:, -1])  # carried
     sum(fut.xy.square().sum() for fut in futures).backward()
-    assert f.unet.down[0][0].weight.grad.abs().max() > 0  # not a zero head that blocks the body
-    assert f.match_stem[0].weight.grad.abs().max() > 0  # the matching costs feed the body
+    assert f.unet.head.weight.grad.abs().max() > 0  # the zero Delta head learns from the first step
 
 
 def test_forecaster_reads_matching_costs_of_its_radius_on_any_plane_size():
     torch.manual_seed(0)
     f = FlowTriplaneForecaster(channels=4, plane_shape=(5, 3, 4), widths=(8, 8), steps=2, match_radius=6)
     assert f.match_stem[0].in_channels == 2 * 13 ** 2  # two pairs of frames, 13 x 13 shifts
-    futures, displacements, deltas = f.predict(_past(b=1, h=5, w=3))  # planes smaller than the radius
+    futures, displacements, deltas = f.predict(_past(b=1, h=5, w=3), torch.ones(1, 4, 5, 3))  # smaller than the radius
     assert len(futures) == 2 and displacements.shape == (1, 2, 2, 5, 3) and deltas.shape == (1, 2, 4, 5, 3)
     assert torch.isfinite(displacements).all() and all(torch.isfinite(fut.xy).all() for fut in futures)
-    f = FlowTriplaneForecaster(channels=4, plane_shape=(6, 6, 4), widths=(8,), history=2, match_radius=0)
-    assert f.match_stem[0].in_channels == 1  # one pair, one shift
-    assert f.predict(_past(b=1, t=2, h=6, w=6))[1].shape == (1, 6, 2, 6, 6)
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(6, 6, 4), widths=(8,), history=3, match_radius=0)
+    assert f.match_stem[0].in_channels == 2  # two pairs, one shift
+    assert f.predict(_past(b=1, t=3, h=6, w=6), torch.zeros(1, 4, 6, 6))[1].shape == (1, 6, 2, 6, 6)
 
 
 def test_forecaster_interface_and_its_limits():
     f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8), steps=3)
-    past = _past(b=1)
-    futures, changes = f(past, 2)
+    past, velocity = _past(b=1), torch.zeros(1, 4, 20, 16)
+    futures, changes, displacements = f(past, velocity, 2)
     assert len(futures) == 2 and torch.allclose(changes[0].xy, futures[0].xy - past.xy[:, -1])
-    with pytest.raises(ValueError, match="from the observed history"):
-        f(past, 2, first_step=1)
+    assert displacements.shape == (1, 2, 2, 20, 16)
+    with pytest.raises(ValueError, match="from the observed history at once; asked for 4 steps"):
+        f(past, velocity, 4)
     with pytest.raises(ValueError, match="5 history frames needed, got 3"):
-        f.predict(past.map(lambda p: p[:, -3:]))
-    with pytest.raises(ValueError, match="at least 2 history frames"):
-        FlowTriplaneForecaster(history=1)
+        f.predict(past.map(lambda p: p[:, -3:]), velocity)
+    with pytest.raises(ValueError, match="reads the 3 history frames the tracker's velocities come from, got 2"):
+        FlowTriplaneForecaster(history=2)
 
 
 @pytest.mark.parametrize("bad, message", [
@@ -258,18 +256,18 @@ def test_world_model_builds_the_forecaster_its_config_names():
     assert isinstance(model.forecaster, FlowTriplaneForecaster)
     past = Triplane(torch.randn(1, 5, 4, 100, 100), torch.randn(1, 5, 4, 100, 16), torch.randn(1, 5, 4, 100, 16))
     assert model.forecaster.match_radius == world.match_radius == 6
-    futures, displacements, deltas, actions = model(past, None)
+    futures, displacements, deltas, actions = model(past, torch.zeros(1, 4, 100, 100))
     assert actions is None  # no route planner inputs
     assert len(futures) == 6 and displacements.shape == (1, 6, 2, 100, 100) and deltas.shape == (1, 6, 4, 100, 100)
     pipeline = model.pipeline
     past_record = Past(torch.zeros(1, 5, 1, 1, 1), torch.zeros(1, 5, 3), torch.zeros(1, 4, 2), past)
-    scene = pipeline.scene(past_record, Agents(), 6)
+    scene = pipeline.scene(past_record, Agents(velocity=torch.zeros(1, 4, 100, 100)), 6)
     assert len(scene.futures) == 6 and pipeline.plan(past_record, scene, None).actions.shape == (1, 6, 2)
 
 
-def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velocities():
+def test_untrained_forecaster_moves_agents_along_their_velocities():
     torch.manual_seed(0)
-    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True)
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3)
     assert f.unet.down[0][0].in_channels == 9 * 4 + 32 + 4  # both velocity fields are inputs too
     past = _past()
     velocity = torch.zeros(2, 4, 20, 16)
@@ -280,20 +278,18 @@ def test_untrained_forecaster_with_a_tracker_prior_moves_agents_along_their_velo
     for k in range(3):  # step k: k + 1 blended velocities; the motion head's correction starts at zero
         assert torch.equal(displacements[:, k], (k + 1) * blend)
     assert f.unet.head.out_channels == 3 * 4  # the UNet predicts Delta only
-    futures, _ = f(past, 2, velocity=velocity)
+    futures, _, _ = f(past, velocity, 2)
     assert len(futures) == 2
     with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 4, 20, 16\].*got None"):
-        f.predict(past)
+        f.predict(past, None)
     with pytest.raises(ValueError, match=r"needs the agents' velocities \[2, 4, 20, 16\].*got \[2, 2, 20, 16\]"):
         f.predict(past, velocity[:, :2])
-    with pytest.raises(ValueError, match="reads 3 history frames, got 2"):
-        FlowTriplaneForecaster(history=2, tracker_prior=True)
 
 
 def test_motion_head_corrects_the_tracked_agents_only():
     torch.manual_seed(0)
-    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True)
-    torch.nn.init.normal_(f.motion_head[-1].bias)  # a trained head: a correction wherever it is asked
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3)
+    torch.nn.init.normal_(f.motion_head.head[-1].bias)  # a trained head: a correction wherever it is asked
     velocity = torch.zeros(2, 4, 20, 16)
     velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)
     velocity[1, 2:, 10, 10] = 0.5  # matched two steps back only: still a tracked agent
@@ -305,10 +301,10 @@ def test_motion_head_corrects_the_tracked_agents_only():
     assert (displacements - prior).abs().sum(2)[1, :, 10, 10].min() > 0
     loss = displacements.square().sum()
     loss.backward()
-    assert f.motion_head[-1].weight.grad.abs().sum() > 0  # the zero-initialised head learns from step 1
+    assert f.motion_head.head[-1].weight.grad.abs().sum() > 0  # the zero-initialised head learns from step 1
 
 
-def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_frames():
+def test_world_model_with_a_flow_forecaster_measures_velocities_from_the_past_frames():
     from t3fast.data.classes import CAR, FREE
     from t3fast.models.config import AutoencoderConfig, WorldModelConfig
     from t3fast.models.world_model import T3Former
@@ -316,7 +312,7 @@ def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_fram
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
     world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
-                             planner_heads=2, ego_aligned=True, tracker_prior=True)
+                             planner_heads=2, ego_aligned=True)
     model = T3Former.from_config(ae, world).eval()
     occ = torch.full((1, 5, 200, 200, 16), FREE, dtype=torch.uint8)
     for t in range(5):  # a car speeding up along x by 2 grid cells a frame each frame; the ego stands still
@@ -330,9 +326,9 @@ def test_world_model_with_a_tracker_prior_measures_velocities_from_the_past_fram
     assert model.forecast(occ, still).labels.shape == (1, 6, 200, 200, 16)
     with pytest.raises(ValueError, match="needs the agents' velocities"):
         model.pipeline.scene(past, Agents(), 6)
-    world.tracker_prior = False
+    world.forecaster = "delta"
     untracked = T3Former.from_config(ae, world).pipeline
-    assert untracked.agents(untracked.encode(occ, still)).velocity is None
+    assert untracked.agents(untracked.encode(occ, still)).velocity is None  # the Delta forecaster reads none
 
 
 def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
@@ -347,7 +343,7 @@ def test_rendering_only_the_changed_voxels_gives_the_labels_of_decoding_all():
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
     world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
-                             planner_heads=2, ego_aligned=True, tracker_prior=True)
+                             planner_heads=2, ego_aligned=True)
     model = T3Former.from_config(ae, world).eval()
     occ = torch.randint(0, 17, (1, 5, 200, 200, 16), dtype=torch.uint8)
     occ[torch.isin(occ, torch.tensor(AGENT_CLASSES, dtype=torch.uint8))] = MANMADE  # a static world
@@ -380,7 +376,7 @@ def _render_agents_model(render_agents: bool = True, agent_boxes: bool = False):
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
     world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], planner_widths=[8, 8, 8, 8], d_act=10,
-                             planner_heads=2, ego_aligned=True, tracker_prior=True, render_agents=render_agents,
+                             planner_heads=2, ego_aligned=True, render_agents=render_agents,
                              agent_boxes=agent_boxes)
     return T3Former.from_config(ae, world).eval()
 
@@ -408,7 +404,7 @@ def test_untrained_agent_render_moves_the_agents_as_the_tracker_does():
     assert torch.equal(labels, expected)
     assert (labels[0, 5, 100:110, 100:104, 1] == CAR).all()  # 6 steps of 6 cells on from 64
     with torch.no_grad():
-        model.forecaster.motion_head[-1].bias.fill_(0.5)  # a trained head's correction
+        model.forecaster.motion_head.head[-1].bias.fill_(0.5)  # a trained head's correction
     moved = model.forecast(occ, torch.zeros(1, 4, 2), future_actions=still).labels
     assert not torch.equal(moved, expected)
 
@@ -485,8 +481,7 @@ def test_agent_render_needs_the_flow_forecaster():
 
 def test_context_motion_head_starts_as_the_tracker_and_reads_the_scene():
     torch.manual_seed(0)
-    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3, tracker_prior=True,
-                               motion_context=True)
+    f = FlowTriplaneForecaster(channels=4, plane_shape=(20, 16, 4), widths=(8, 8, 16), steps=3)
     past = _past()
     velocity = torch.zeros(2, 4, 20, 16)
     velocity[0, :, 5:8, 4:7] = torch.tensor([1.5, -1.0, 1.0, -1.0]).view(4, 1, 1)
@@ -503,13 +498,20 @@ def test_context_motion_head_starts_as_the_tracker_and_reads_the_scene():
         _, after, _ = f.predict(far, velocity)
     assert (before[0, :, :, 6, 5] - after[0, :, :, 6, 5]).abs().max() > 0  # the agent's motion reads it
     assert (after[:, :, :, (velocity == 0).all(1)[0]] == 0).all()  # the untracked world stays still
-    with pytest.raises(ValueError, match="motion_context=True.* needs tracker_prior"):
-        FlowTriplaneForecaster(motion_context=True)
 
 
-def test_motion_context_config_needs_the_tracker_prior():
+def test_configs_of_earlier_versions_load_without_their_removed_flow_switches():
+    """Checkpoints name tracker_prior / motion_context, which the flow forecaster now always has."""
     from t3fast.errors import ConfigError
+    from t3fast.io.config import load_config
     from t3fast.models.config import WorldModelConfig
 
-    with pytest.raises(ConfigError, match="'motion_context' .* needs tracker_prior=true"):
-        WorldModelConfig(forecaster="flow", motion_context=True)
+    flow = load_config(WorldModelConfig, {"forecaster": "flow", "tracker_prior": True, "motion_context": True})
+    assert flow.forecaster == "flow" and not hasattr(flow, "tracker_prior")
+    delta = load_config(WorldModelConfig, {"forecaster": "delta", "tracker_prior": False, "motion_context": False})
+    assert delta.forecaster == "delta"
+    for key in ("tracker_prior", "motion_context"):
+        with pytest.raises(ConfigError, match=f"'{key}=false' is no longer supported"):
+            load_config(WorldModelConfig, {"forecaster": "flow", key: False})
+        with pytest.raises(ConfigError, match=f"'{key}=false' is no longer supported"):
+            load_config(WorldModelConfig, {"forecaster": "flow"}, overrides=[f"{key}=false"])

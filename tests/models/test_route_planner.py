@@ -90,7 +90,7 @@ def test_route_planner_config_and_the_world_models_command_checks():
         WorldModelConfig(route_modes=0)
     ae = AutoencoderConfig(embed_dim=4, full_res_channels=4, full_res_blocks=0, half_res_channels=8,
                            half_res_blocks=0, channels=4, decoder_channels=8, decoder_hidden=[16])
-    world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], ego_aligned=True, tracker_prior=True,
+    world = WorldModelConfig(forecaster="flow", flow_widths=[8, 8], ego_aligned=True,
                              render_agents=True, planner="route")
     model = T3Former.from_config(ae, world).eval()
     assert model.reads_command and isinstance(model.planner, RoutePlanner)

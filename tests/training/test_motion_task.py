@@ -153,19 +153,14 @@ def test_train_motion_retrains_only_the_motion_head_and_its_checkpoints_are_worl
     assert "t3former_gt_ego" in json.loads((tmp_path / "ev" / "metrics.json").read_text())
 
 
-def test_train_motion_refuses_a_world_model_without_a_motion_head(world_ckpt, tmp_path):
-    state = load_checkpoint(world_ckpt)
-    state["config"]["task"]["model"]["tracker_prior"] = False
-    torch.save(state, tmp_path / "no-prior.pt")
-    with pytest.raises(ConfigError, match="no motion head to train"):
-        MotionTask(MotionConfig(world_model=str(tmp_path / "no-prior.pt")))
+def test_train_motion_refuses_a_world_model_without_a_motion_head(tmp_path):
+    with pytest.raises(ConfigError, match="'wm-small-no-delta' has no motion head to train"):
+        MotionTask(MotionConfig(world_model="wm-small-no-delta"))
 
 
-def test_the_motion_cache_needs_a_tracker_prior(world_ckpt, tmp_path):
-    model = load_world_model(world_ckpt)
-    model.forecaster.tracker_prior = False
-    with pytest.raises(ValueError, match="tracker_prior"):
-        MotionCache(SyntheticDriving("train", 1, 13, stride=2), model, tmp_path)
+def test_the_motion_cache_needs_a_flow_forecaster(tmp_path):
+    with pytest.raises(ValueError, match="the model needs a flow forecaster"):
+        MotionCache(SyntheticDriving("train", 1, 13, stride=2), load_world_model("wm-small-no-delta"), tmp_path)
 
 
 def test_a_negative_parked_weight_is_refused():

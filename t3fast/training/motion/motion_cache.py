@@ -27,6 +27,7 @@ from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.forecast.agents import measured_velocities
 from t3fast.models.ego_motion import planar_poses
+from t3fast.models.flow_forecaster import FlowTriplaneForecaster
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 from t3fast.training.planner.plan_cache import PlanCache
@@ -82,9 +83,8 @@ class MotionCache(SceneFiles):
     desc = "measure agent motion"
 
     def __init__(self, windows: SyntheticDriving, model: T3Former, cache_dir: str | Path):
-        if not getattr(model.forecaster, "tracker_prior", False):
-            raise ValueError("the motion head corrects the tracker: the model needs a flow forecaster with "
-                             "tracker_prior=True")
+        if not isinstance(model.forecaster, FlowTriplaneForecaster):
+            raise ValueError("the motion head corrects the tracker: the model needs a flow forecaster")
         self.model = model
         self.planes = PlanCache(windows, model, cache_dir)
         h, w = model.encoder.config.plane_shape[:2]

@@ -75,9 +75,9 @@ class MotionTask:
         self.cfg = copy.deepcopy(cfg)
         self._state = read_checkpoint(resolve(self.cfg.world_model), WORLD_MODEL)
         model_cfg = self._state["config"]["task"].get("model", {})
-        if model_cfg.get("forecaster") != "flow" or not model_cfg.get("tracker_prior"):
+        if model_cfg.get("forecaster") != "flow":
             raise ConfigError(f"world_model {self.cfg.world_model!r} has no motion head to train: train-motion needs "
-                              "model.forecaster = 'flow' with model.tracker_prior = true")
+                              "model.forecaster = 'flow'")
         self._model: T3Former | None = None
         self._val: MotionWindows | None = None
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)

@@ -20,6 +20,7 @@ from workloads import (
     decode_cost,
     delta_fuse_cost,
     delta_fuse_shapes,
+    label_conv3d_cost,
     make_decode_inputs,
     rounds,
     run_decode,
@@ -182,6 +183,7 @@ def test_label_conv3d(benchmark, impl, channels):
     """The encoder's stem on a 200 x 200 x 16 frame; the reference is the embedding + conv3d."""
     benchmark.group = f"label_conv3d stem [1,200,200,16] C={channels}"
     inputs = _stem_inputs(channels)
+    benchmark.extra_info.update(label_conv3d_cost(channels))
     benchmark.pedantic(synchronized(lambda: _stem(impl, *inputs)), rounds=rounds(10), warmup_rounds=2)
 
 
@@ -189,6 +191,7 @@ def test_label_conv3d(benchmark, impl, channels):
 def test_label_conv3d_backward(benchmark, impl):
     benchmark.group = "label_conv3d stem fwd+bwd [1,200,200,16] C=32"
     labels, embed, weight = _stem_inputs(32, requires_grad=True)
+    benchmark.extra_info.update(label_conv3d_cost(32, backward=True))
 
     def step():
         out = _stem(impl, labels, embed, weight)

@@ -162,3 +162,15 @@ def delta_fuse_cost(backward: bool = False) -> dict[str, float]:
             flops += pixels * (4 * c * c + c)
             values += 4 * pixels * c + c * c + c
     return {"flops": float(flops), "bytes": float(values * FLOAT_BYTES)}
+
+
+def label_conv3d_cost(channels: int, backward: bool = False) -> dict[str, float]:
+    """One 200 x 200 x 16 frame, 18 classes. Forward: 27 table rows of ``channels`` values added
+    per voxel; bytes: the uint8 labels read, the output written (the table stays in cache).
+    Backward: the output gradient added into 27 rows per voxel; the gradient read as well."""
+    voxels = 200 * 200 * 16
+    flops = 27 * channels * voxels
+    nbytes = voxels + voxels * channels * FLOAT_BYTES + 27 * 18 * channels * FLOAT_BYTES
+    if backward:
+        flops, nbytes = 2 * flops, nbytes + voxels * channels * FLOAT_BYTES
+    return {"flops": float(flops), "bytes": float(nbytes)}

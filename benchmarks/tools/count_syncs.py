@@ -20,7 +20,7 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.pretrained import load_world_model
 
 #: aten ops whose output the host reads or whose output's shape depends on the values
-SYNCING = {"_local_scalar_dense", "nonzero", "unique", "_unique2", "unique_dim", "unique_consecutive",
+SYNCING = {"_local_scalar_dense", "equal", "nonzero", "unique", "_unique2", "unique_dim", "unique_consecutive",
            "masked_select", "repeat_interleave", "bincount"}  # and aten.index with a boolean mask
 
 

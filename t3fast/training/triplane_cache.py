@@ -24,7 +24,8 @@ from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.triplane import Triplane
 from t3fast.training.cache_files import Dim, Field, Layout, read_or_none, world_digest, write_entry
 
-TRIPLANE_CACHE_FORMAT = 2  # 2: one checked entry file per scene
+# 2: one checked entry file per scene; 3: the encoder's stem as label_conv3d (planes moved by up to 0.04)
+TRIPLANE_CACHE_FORMAT = 3
 
 
 def encoder_digest(encoder: TriplaneEncoder) -> str:

@@ -28,7 +28,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 from t3fast.training.triplane_cache import encoder_digest
 
-PLAN_CACHE_FORMAT = 2  # 2: checked entry files
+PLAN_CACHE_FORMAT = 3  # 2: checked entry files; 3: the encoder's stem as label_conv3d (planes moved by up to 0.04)
 ENCODE_WINDOWS = 8  # windows (two frames each) per encoder call
 
 

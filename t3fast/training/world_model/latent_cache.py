@@ -47,8 +47,9 @@ from t3fast.training.cache_files import (
 from t3fast.training.triplane_cache import encoder_digest, plane_fields, planes_from, planes_payload
 from t3fast.training.world_model.windows import ego_aligned_window
 
-# 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained; 5: checked entries
-CACHE_FORMAT = 5
+# 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained; 5: checked entries;
+# 6: the encoder's stem as label_conv3d (planes moved by up to 0.04)
+CACHE_FORMAT = 6
 
 
 @dataclass

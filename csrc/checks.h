@@ -155,15 +155,19 @@ struct LabelConvShape {
   int64_t B, X, Y, Z, K, C;
 };
 
-// label_conv3d: integer labels [B, X, Y, Z] (uint8, int32 or int64) and a float table
-// [27, K, C] on the same device.
-inline LabelConvShape check_label_conv3d(const at::Tensor& labels, const at::Tensor& table,
-                                         const char* op) {
+// label_conv3d's labels: [B, X, Y, Z] class ids of an integer dtype: uint8, int32 or int64.
+inline void check_class_ids(const at::Tensor& labels, const char* op) {
   check_dim(labels, op, "labels", 4, "[B, X, Y, Z]");
-  check_dim(table, op, "table", 3, "[27, K, C]");
   const auto st = labels.scalar_type();
   T3FAST_CHECK(st == at::kByte || st == at::kInt || st == at::kLong, op,
                "labels must be uint8, int32 or int64 class ids, got ", st);
+}
+
+// label_conv3d: class ids [B, X, Y, Z] and a float table [27, K, C] on the same device.
+inline LabelConvShape check_label_conv3d(const at::Tensor& labels, const at::Tensor& table,
+                                         const char* op) {
+  check_class_ids(labels, op);
+  check_dim(table, op, "table", 3, "[27, K, C]");
   check_float_dtype(table, op, "table");
   check_same_device(table, labels, op, "table", "labels");
   check_size(table, op, "table", 0, 27, "the 3 x 3 x 3 taps");
@@ -177,10 +181,7 @@ inline LabelConvShape check_label_conv3d(const at::Tensor& labels, const at::Ten
 inline LabelConvShape check_label_conv3d_backward(const at::Tensor& grad, const at::Tensor& labels,
                                                   int64_t classes, const char* op) {
   check_dim(grad, op, "grad", 5, "[B, C, X, Y, Z]");
-  check_dim(labels, op, "labels", 4, "[B, X, Y, Z]");
-  const auto st = labels.scalar_type();
-  T3FAST_CHECK(st == at::kByte || st == at::kInt || st == at::kLong, op,
-               "labels must be uint8, int32 or int64 class ids, got ", st);
+  check_class_ids(labels, op);
   check_float_dtype(grad, op, "grad");
   check_same_device(labels, grad, op, "labels", "grad");
   check_size(grad, op, "grad", 0, labels.size(0), "batch, as labels");

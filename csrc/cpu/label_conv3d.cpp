@@ -14,6 +14,7 @@
 
 #include "checks.h"
 #include "cpu/simd.h"
+#include "label_types.h"
 
 namespace t3fast {
 namespace {
@@ -175,16 +176,9 @@ at::Tensor label_conv3d_cpu(const at::Tensor& labels, const at::Tensor& table) {
   at::Tensor out = at::empty({s.B, s.C, s.X, s.Y, s.Z}, t.options());
   if (out.numel() == 0) return out;
   AT_DISPATCH_FLOATING_TYPES(t.scalar_type(), "label_conv3d_cpu", [&] {
-    switch (l.scalar_type()) {
-      case at::kByte:
-        label_conv3d_typed<scalar_t, uint8_t>(l, t, out, s);
-        break;
-      case at::kInt:
-        label_conv3d_typed<scalar_t, int32_t>(l, t, out, s);
-        break;
-      default:
-        label_conv3d_typed<scalar_t, int64_t>(l, t, out, s);
-    }
+    dispatch_label_type(l.scalar_type(), [&](auto label) {
+      label_conv3d_typed<scalar_t, decltype(label)>(l, t, out, s);
+    });
   });
   return out;
 }
@@ -196,16 +190,9 @@ at::Tensor label_conv3d_backward_cpu(const at::Tensor& grad, const at::Tensor& l
   at::Tensor grad_table = at::zeros({27, s.K, s.C}, g.options());
   if (g.numel() == 0 || grad_table.numel() == 0) return grad_table;
   AT_DISPATCH_FLOATING_TYPES(g.scalar_type(), "label_conv3d_backward_cpu", [&] {
-    switch (l.scalar_type()) {
-      case at::kByte:
-        label_conv3d_backward_typed<scalar_t, uint8_t>(g, l, grad_table, s);
-        break;
-      case at::kInt:
-        label_conv3d_backward_typed<scalar_t, int32_t>(g, l, grad_table, s);
-        break;
-      default:
-        label_conv3d_backward_typed<scalar_t, int64_t>(g, l, grad_table, s);
-    }
+    dispatch_label_type(l.scalar_type(), [&](auto label) {
+      label_conv3d_backward_typed<scalar_t, decltype(label)>(g, l, grad_table, s);
+    });
   });
   return grad_table;
 }

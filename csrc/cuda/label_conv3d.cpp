@@ -12,6 +12,7 @@
 #include "cuda/runtime.h"
 #include "cuda/scalar_types.h"
 #include "cuda/stream.h"
+#include "label_types.h"
 
 namespace t3fast {
 namespace {
@@ -24,17 +25,11 @@ cudaError_t launch(const at::Tensor& labels, const at::Tensor& table, const Labe
                    at::Tensor& out, cudaStream_t stream) {
   const int X = static_cast<int>(s.X), Y = static_cast<int>(s.Y), Z = static_cast<int>(s.Z);
   const int K = static_cast<int>(s.K), C = static_cast<int>(s.C);
-  switch (labels.scalar_type()) {
-    case at::kByte:
-      return cuda::label_conv3d_forward<T>(ptr<const uint8_t>(labels), ptr<const T>(table), s.B, X,
-                                           Y, Z, K, C, ptr<T>(out), stream);
-    case at::kInt:
-      return cuda::label_conv3d_forward<T>(ptr<const int32_t>(labels), ptr<const T>(table), s.B,
-                                           X, Y, Z, K, C, ptr<T>(out), stream);
-    default:
-      return cuda::label_conv3d_forward<T>(ptr<const int64_t>(labels), ptr<const T>(table), s.B,
-                                           X, Y, Z, K, C, ptr<T>(out), stream);
-  }
+  return dispatch_label_type(labels.scalar_type(), [&](auto label) {
+    using L = decltype(label);
+    return cuda::label_conv3d_forward<T>(ptr<const L>(labels), ptr<const T>(table), s.B, X, Y, Z,
+                                         K, C, ptr<T>(out), stream);
+  });
 }
 
 at::Tensor label_conv3d_cuda(const at::Tensor& labels, const at::Tensor& table) {

@@ -49,9 +49,8 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
     sidewalks go on) and everything else is free (continuing walls, trees and cars past the
     edge cost 6.5 IoU points on validation windows; ground alone gained 1.6).
     """
-    agents = _AGENTS
-    agent_change = (decoded != reference) & (in_classes(decoded, agents) | in_classes(reference, agents))
-    editable = in_classes(moved, agents) | (moved == FREE)
+    agent_change = (decoded != reference) & (in_classes(decoded, _AGENTS) | in_classes(reference, _AGENTS))
+    editable = in_classes(moved, _AGENTS) | (moved == FREE)
     inside = torch.where(agent_change & editable, decoded, moved)
     return torch.where(moved == IGNORE, beyond_present(decoded), inside)
 
@@ -135,8 +134,7 @@ class KeepObservedStatic:
         ``decoded`` ``[N]``, except where those or the observed labels ``observed`` ``[N]`` show an
         agent, where the present triplane ``planes`` (batch 1) is decoded at ``points``
         ``[1, N, 3]`` instead."""
-        agents = _AGENTS
-        need = in_classes(decoded, agents) | in_classes(observed, agents)
+        need = in_classes(decoded, _AGENTS) | in_classes(observed, _AGENTS)
         reference = decoded.clone()
         if bool(need.any()):
             reference[need] = self.decoder.predict(planes, points[:, need]).view(-1)

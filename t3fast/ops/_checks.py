@@ -200,9 +200,9 @@ def check_label_conv3d(labels: torch.Tensor, table: torch.Tensor) -> None:
     """label_conv3d's arguments, as csrc/checks.h checks them (and the CPU kernel the labels)."""
     op = "label_conv3d"
     _check_dim(labels, op, "labels", 4, "[B, X, Y, Z]")
-    _check_dim(table, op, "table", 3, "[27, K, C]")
     _require(labels.dtype in (torch.uint8, torch.int32, torch.int64), op,
              f"labels must be uint8, int32 or int64 class ids, got {_dtype_name(labels.dtype)}")
+    _check_dim(table, op, "table", 3, "[27, K, C]")
     _check_float(table, op, "table")
     _check_device(table, labels, op, "table", "labels")
     _check_size(table, op, "table", 0, 27, "the 3 x 3 x 3 taps")

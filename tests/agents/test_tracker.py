@@ -126,33 +126,3 @@ def test_component_shifts_average_the_displacement_over_each_agent_in_grid_cells
     assert (shifts[[0, 2]] == 0).all()
     empty = frame_agents(frame.masked_fill(frame == CAR, FREE), torch.tensor(AGENT_CLASSES, dtype=torch.uint8))
     assert component_shifts(empty, displacement).shape == (3, 0, 2)
-
-
-def test_bev_components_match_a_flood_fill():
-    """Random masks: the components (up to their numbering) are the 8-connected ones a
-    breadth-first flood fill finds, including those touching the border."""
-    g = torch.Generator().manual_seed(3)
-    for density in (0.1, 0.35, 0.6):
-        mask = torch.rand(37, 23, generator=g) < density
-        ids, n = bev_components(mask)
-        seen = torch.zeros_like(mask)
-        count = 0
-        for i, j in mask.nonzero().tolist():
-            if seen[i, j]:
-                continue
-            count += 1
-            stack, members = [(i, j)], []
-            seen[i, j] = True
-            while stack:
-                a, b = stack.pop()
-                members.append((a, b))
-                for da in (-1, 0, 1):
-                    for db in (-1, 0, 1):
-                        p, q = a + da, b + db
-                        if 0 <= p < 37 and 0 <= q < 23 and mask[p, q] and not seen[p, q]:
-                            seen[p, q] = True
-                            stack.append((p, q))
-            assert len({int(ids[a, b]) for a, b in members}) == 1
-            assert int(ids[i, j]) > 0
-        assert n == count
-        assert torch.equal(ids > 0, mask)

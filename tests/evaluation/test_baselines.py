@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from t3fast.agents.tracker import bev_components
@@ -77,8 +78,9 @@ def _track(frames: list[torch.Tensor], poses: torch.Tensor | None = None, steps:
     return track_gt_ego(past, _static_poses() if poses is None else poses, steps)[0]
 
 
-def test_components_are_eight_connected_and_match_a_flood_fill():
-    mask = torch.rand(30, 30, generator=torch.Generator().manual_seed(0)) < 0.45
+@pytest.mark.parametrize("shape, density", [((30, 30), 0.45), ((37, 23), 0.1), ((37, 23), 0.35), ((37, 23), 0.6)])
+def test_components_are_eight_connected_and_match_a_flood_fill(shape, density):
+    mask = torch.rand(*shape, generator=torch.Generator().manual_seed(0)) < density
     labels, n = bev_components(mask)
     seen = torch.zeros_like(labels)
     count = 0
@@ -93,7 +95,7 @@ def test_components_are_eight_connected_and_match_a_flood_fill():
             for di in (-1, 0, 1):
                 for dj in (-1, 0, 1):
                     a, b = i + di, j + dj
-                    if 0 <= a < 30 and 0 <= b < 30 and mask[a, b] and not seen[a, b]:
+                    if 0 <= a < shape[0] and 0 <= b < shape[1] and mask[a, b] and not seen[a, b]:
                         seen[a, b] = count
                         stack.append((a, b))
     assert n == count and bool((labels[~mask] == 0).all())

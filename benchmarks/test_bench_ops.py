@@ -198,3 +198,23 @@ def test_label_conv3d_backward(benchmark, impl):
         return torch.autograd.grad(out, (embed, weight), torch.ones_like(out))
 
     benchmark.pedantic(synchronized(step), rounds=rounds(3), warmup_rounds=1)
+
+
+def _agent_masks() -> torch.Tensor:
+    """The agent columns (vehicles and humans) of the six observed frames of a synthetic
+    validation window: the masks the tracker finds its agents in ``[6, 200, 200]``."""
+    from t3fast.data.classes import AGENT_CLASSES, in_classes
+    from t3fast.data.synthetic import SyntheticDriving
+
+    frames = SyntheticDriving("val", 1, 20, stride=9)[0].occ[:6]
+    return in_classes(frames, torch.tensor(AGENT_CLASSES)).any(-1).to(DEVICE)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_bev_components(benchmark, impl):
+    """The agents' 8-connected components in six frames; the reference is the label propagation
+    the tracker ran before (a host synchronisation per round)."""
+    benchmark.group = "bev_components agents [6,200,200]"
+    masks = _agent_masks()
+    benchmark.extra_info.update(bytes=float(masks.numel() * 9))  # the mask read, int64 labels written
+    benchmark.pedantic(synchronized(lambda: IMPLS[impl].bev_components(masks)), rounds=rounds(20), warmup_rounds=2)

@@ -192,4 +192,10 @@ inline LabelConvShape check_label_conv3d_backward(const at::Tensor& grad, const 
   return {labels.size(0), labels.size(1), labels.size(2), labels.size(3), classes, grad.size(1)};
 }
 
+// bev_components: a bool mask [B, X, Y] (the BEV cells of a class), any device.
+inline void check_bev_mask(const at::Tensor& mask, const char* op) {
+  check_dim(mask, op, "mask", 3, "[B, X, Y]");
+  T3FAST_CHECK(mask.scalar_type() == at::kBool, op, "mask must be bool, got ", mask.scalar_type());
+}
+
 }  // namespace t3fast

@@ -40,6 +40,10 @@ TORCH_LIBRARY(t3fast, m) {
   m.def("label_conv3d(Tensor labels, Tensor table) -> Tensor");
   // The gradient of label_conv3d's table [27, classes, C] from grad [B, C, X, Y, Z].
   m.def("label_conv3d_backward(Tensor grad, Tensor labels, int classes) -> Tensor");
+  // The 8-connected components of bool masks [B, X, Y]: labels int64 [B, X, Y], 0 off the mask
+  // and 1..n on it, numbered in the row-major order of each component's last cell, and n int64
+  // [B] (a tensor: no host synchronisation).
+  m.def("bev_components(Tensor mask) -> (Tensor, Tensor)");
 }
 
 namespace {

@@ -231,5 +231,13 @@ template <typename T, typename L>
 cudaError_t label_conv3d_forward(const L* labels, const T* table, int64_t batch, int x, int y,
                                  int z, int classes, int channels, T* out, cudaStream_t stream);
 
+// ------------------------------------------------------------------ bev_components
+
+// The 8-connected components of the masks [batch, x, y] (contiguous bool): parent [batch * x * y]
+// receives, per cell on a mask, its component's root (the flat index, counted over the whole
+// batch, of the component's last cell in row-major order), and -1 off the masks.
+cudaError_t bev_component_roots(const bool* mask, int64_t batch, int x, int y, int* parent,
+                                cudaStream_t stream);
+
 }  // namespace cuda
 }  // namespace t3fast

@@ -19,7 +19,7 @@ from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
-__all__ = ["axis_pool", "build_info", "delta_fuse", "label_conv3d", "reference", "triplane_decode"]
+__all__ = ["axis_pool", "bev_components", "build_info", "delta_fuse", "label_conv3d", "reference", "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -178,3 +178,20 @@ def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
         _checks.check_label_conv3d(labels, table)
         return reference.label_conv3d(labels, table)
     return ops.label_conv3d.default(labels, table)
+
+
+def bev_components(mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The 8-connected components of bird's-eye-view masks, without a host synchronisation.
+
+    Args:
+        mask: ``[B, X, Y]`` bool.
+
+    Returns:
+        labels int64 ``[B, X, Y]``: 0 off the mask, 1..n on it, the components numbered in the
+        row-major order of their last cell; and n, the number of components, int64 ``[B]`` (a
+        tensor on the mask's device: reading it is the caller's choice).
+    """
+    if ops is None:
+        _checks.check_bev_components(mask)
+        return reference.bev_components(mask)
+    return ops.bev_components.default(mask)

@@ -212,3 +212,10 @@ def check_label_conv3d(labels: torch.Tensor, table: torch.Tensor) -> None:
         if bad.numel():
             _require(False, op, f"labels must be class ids in [0, {table.shape[1]}) (the rows of table), "
                                 f"got {bad[0].item()}")
+
+
+def check_bev_components(mask: torch.Tensor) -> None:
+    """bev_components' mask, as csrc/checks.h checks it."""
+    op = "bev_components"
+    _check_dim(mask, op, "mask", 3, "[B, X, Y]")
+    _require(mask.dtype == torch.bool, op, f"mask must be bool, got {_dtype_name(mask.dtype)}")

@@ -268,6 +268,13 @@ torch.library.register_autograd("t3fast::label_conv3d_backward", _label_conv3d_b
                                 setup_context=_label_conv3d_backward_setup)
 
 
+# ---------------------------------------------------------------- bev_components
+@torch.library.register_fake("t3fast::bev_components")
+def _bev_components_fake(mask):
+    torch._check(mask.dim() == 3, lambda: f"mask must have 3 dims, got {mask.dim()}")
+    return mask.new_empty(mask.shape, dtype=torch.long), mask.new_empty(mask.shape[:1], dtype=torch.long)
+
+
 # ---------------------------------------------------------------- autocast
 _autocast_lib = torch.library.Library("t3fast", "IMPL")
 

@@ -139,3 +139,35 @@ def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
     weight = table.reshape(3, 3, 3, classes, channels).permute(4, 3, 0, 1, 2)
     return F.conv3d(one_hot, weight, padding=1)
 
+
+
+def bev_components(mask: Tensor) -> tuple[Tensor, Tensor]:
+    """8-connected components of BEV masks ``[B, X, Y]`` (bool) by label propagation: every
+    cell takes the largest label of its 3x3 neighbourhood and then the label its label points
+    at (pointer jumping, so a component of diameter d converges in about log d rounds rather
+    than d), until nothing changes; each component ends labelled by its last cell.
+
+    Returns:
+        labels int64 ``[B, X, Y]`` (0 off the mask, 1..n on it in the row-major order of each
+        component's last cell) and n int64 ``[B]``.
+    """
+    b, nx, ny = mask.shape
+    if mask.numel() == 0:
+        return torch.zeros(b, nx, ny, dtype=torch.long, device=mask.device), torch.zeros(
+            b, dtype=torch.long, device=mask.device)
+    keep = mask.float()
+    # labels are 1 + the flat index of a cell of the same component (exact in float32 below 2^24)
+    labels = torch.arange(1, nx * ny + 1, dtype=torch.float32, device=mask.device).view(1, nx, ny) * keep
+    while True:
+        pooled = F.max_pool2d(labels[:, None], 3, stride=1, padding=1)[:, 0] * keep
+        flat = pooled.flatten(1)
+        jumped = torch.maximum(flat, flat.gather(1, (flat.long() - 1).clamp(min=0)) * keep.flatten(1))
+        jumped = jumped.view(b, nx, ny)
+        if torch.equal(jumped, labels):
+            break
+        labels = jumped
+    last = labels.long().flatten(1)  # 1 + each component's last cell
+    index = torch.arange(1, nx * ny + 1, device=mask.device)
+    rank = (last == index).cumsum(1)  # a component's number: how many components end up to its last cell
+    out = torch.where(last > 0, rank.gather(1, (last - 1).clamp(min=0)), 0)
+    return out.view(b, nx, ny), rank[:, -1]

@@ -7,7 +7,7 @@ import re
 import pytest
 import torch
 
-from t3fast.ops import axis_pool, delta_fuse, label_conv3d, triplane_decode
+from t3fast.ops import axis_pool, bev_components, delta_fuse, label_conv3d, triplane_decode
 
 from .test_triplane_decode import make_inputs
 
@@ -150,3 +150,17 @@ def test_delta_fuse_rejects(args, pattern):
 def test_label_conv3d_rejects(labels, table, pattern):
     with pytest.raises(RuntimeError, match=r"t3fast\.label_conv3d: .*" + pattern):
         label_conv3d(labels, table)
+
+
+@pytest.mark.parametrize(
+    "mask, pattern",
+    [
+        (torch.zeros(3, 4, dtype=torch.bool), r"mask must have 3 dims \[B, X, Y\], got 2 dims"),
+        (torch.zeros(1, 3, 4, 2, dtype=torch.bool), r"mask must have 3 dims \[B, X, Y\], got 4 dims"),
+        (torch.zeros(1, 3, 4, dtype=torch.uint8), r"mask must be bool, got Byte"),
+        (torch.zeros(1, 3, 4), r"mask must be bool, got Float"),
+    ],
+)
+def test_bev_components_rejects(mask, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.bev_components: .*" + pattern):
+        bev_components(mask)

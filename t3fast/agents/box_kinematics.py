@@ -33,7 +33,6 @@ from t3fast.data.classes import (
     GRID_LOWER,
     MANMADE,
     MOTORCYCLE,
-    NUM_CLASSES,
     OTHER_FLAT,
     OTHERS,
     PEDESTRIAN,
@@ -45,6 +44,7 @@ from t3fast.data.classes import (
     VEGETATION,
     VOXEL_SIZE,
     box_footprint,
+    in_classes,
 )
 
 #: BEV groups of the context map: a column belongs to every group one of its voxels is in
@@ -122,16 +122,11 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     fitted velocity (metres per step, present frame). The ego is a vehicle too (the agents behind
     it follow it), though the labels leave it out: its footprint at the origin is drawn into the
     vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
-    present = present.long()
-    held = torch.zeros(NUM_CLASSES, *present.shape[:2], dtype=torch.bool, device=present.device)
-    for z in range(present.shape[2]):
-        held |= F.one_hot(present[:, :, z].clamp(max=NUM_CLASSES - 1), NUM_CLASSES).permute(2, 0, 1).bool()
-    groups = [held[list(g)].any(0) for g in CONTEXT_GROUPS]
+    groups = [in_classes(present, torch.tensor(g, device=present.device)).any(-1) for g in CONTEXT_GROUPS]
     ids = agent_ids.to(present.device)
-    velocity = torch.zeros(2, *ids.shape, dtype=torch.float32, device=ids.device)
-    on = ids > 0
-    if bool(on.any()):
-        velocity[:, on] = boxes.velocity[ids[on] - 1].T.float()
+    # row 0: off the agents; row 1 + i: agent i's velocity
+    per_agent = torch.cat([boxes.velocity.new_zeros(1, 2), boxes.velocity]).float().to(ids.device)
+    velocity = per_agent[ids].permute(2, 0, 1).contiguous()
     footprint = box_footprint(0.0, 0.0, EGO_LENGTH, EGO_WIDTH, 0.0, tuple(ids.shape))
     if footprint is not None:
         rows, cols, inside = footprint

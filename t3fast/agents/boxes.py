@@ -283,12 +283,12 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
 def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Tensor:
     """Each followed agent's column centroid in every frame (:func:`follow_agents`' ``match``
     ``[n, T]``), in the present frame: ``[n, T, 2]`` metres, NaN where it was not found."""
-    track = poses.new_full((*match.shape, 2), math.nan)
+    tracks = []
     for t, frame in enumerate(agents):
-        seen = match[:, t] >= 0
-        if bool(seen.any()):
-            track[seen, t] = cell_metres(frame["centroid"][match[seen, t]], poses[t])
-    return track
+        centroid = torch.cat([frame["centroid"], frame["centroid"].new_full((1, 2), math.nan)])  # last: not found
+        index = torch.where(match[:, t] >= 0, match[:, t], centroid.shape[0] - 1)
+        tracks.append(cell_metres(centroid[index], poses[t]))
+    return torch.stack(tracks, 1) if tracks else poses.new_full((*match.shape, 2), math.nan)
 
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,

@@ -53,13 +53,9 @@ class MoveAgents:
         if fitted.label.shape[0] != now["cls"].shape[0]:
             raise ValueError(f"{fitted.label.shape[0]} fitted boxes for the {now['cls'].shape[0]} agents "
                              "of the present frame: fit them on the same frames")
-        as_box = fitted.drawn
-        if not bool(as_box.any()):
-            return AgentMoves(now, shift, as_box, fitted, None)
         if self.box_motion is not None:
-            future = predict_box_poses(self.box_motion, past.occupancy[n, -1], fitted, ids[n],
-                                       ego_step(past.poses[n]))
-            return AgentMoves(now, shift, as_box, fitted, future[:, as_box])
-        centre = fitted.centre[as_box] + shift[:, as_box.to(shift.device)].to(fitted.centre.device) * VOXEL_SIZE
-        yaw = fitted.yaw[as_box].expand(shift.shape[0], -1)
-        return AgentMoves(now, shift, as_box, fitted, torch.cat([centre, yaw[..., None]], -1))
+            poses = predict_box_poses(self.box_motion, past.occupancy[n, -1], fitted, ids[n], ego_step(past.poses[n]))
+        else:
+            centre = fitted.centre + shift.to(fitted.centre.device) * VOXEL_SIZE
+            poses = torch.cat([centre, fitted.yaw.expand(shift.shape[0], -1)[..., None]], -1)
+        return AgentMoves(now, shift, fitted.drawn, fitted, poses)

@@ -60,8 +60,9 @@ class Scene:
 class AgentMoves:
     """Where one sample's present agents go, for the label-space render: ``agents`` (the present
     frame's :func:`~t3fast.agents.tracker.frame_agents`), each agent's ``shift`` ``[S, n, 2]``
-    (grid cells), ``as_box`` ``[n]`` (drawn as its fitted box), and those boxes (``boxes``, or None
-    when none is drawn) at every step: ``box_poses`` ``[S, m, 3]`` (centre, yaw; present frame)."""
+    (grid cells), ``as_box`` ``[n]`` (drawn as its fitted box), and the fitted boxes (``boxes``,
+    or None for a model that fits none) at every step: ``box_poses`` ``[S, n, 3]`` (centre, yaw;
+    present frame; only those ``as_box`` are drawn)."""
 
     agents: dict[str, Tensor]
     shift: Tensor

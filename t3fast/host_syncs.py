@@ -1,0 +1,52 @@
+"""Where code waits on its data: the ops whose result the host must read (a scalar read,
+``nonzero``, ``unique``, a boolean mask: data-dependent shapes). On a GPU each one is a host
+synchronisation, and a step captured as one CUDA graph (or compiled whole) can hold none.
+
+:class:`SyncCounter` counts them on any device (a CPU run counts what a GPU run would wait on),
+by op and by the t3fast function that ran them::
+
+    with SyncCounter() as counter:
+        model.forecast(past_occupancy, past_poses)
+    counter.by_caller.most_common()
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections import Counter
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+#: aten ops whose output the host reads or whose output's shape depends on the values
+SYNCING = frozenset({"_local_scalar_dense", "equal", "nonzero", "unique", "_unique2", "unique_dim",
+                     "unique_consecutive", "masked_select", "repeat_interleave", "bincount"})
+
+
+class SyncCounter(TorchDispatchMode):
+    """Counts the syncing ops (:data:`SYNCING`, and indexing with a boolean mask) run under it:
+    ``by_op`` (op name) and ``by_caller`` (``"module/path.py:function"`` of the innermost t3fast
+    frame that ran it)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.by_op: Counter[str] = Counter()
+        self.by_caller: Counter[str] = Counter()
+
+    @property
+    def total(self) -> int:
+        """How many syncing ops ran."""
+        return sum(self.by_op.values())
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func._schema.name.split("::")[-1]
+        indices = args[1] if name in ("index", "index_put", "index_put_") and len(args) > 1 else []
+        boolean_index = any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in indices or [])
+        if name in SYNCING or boolean_index:
+            self.by_op["index (bool mask)" if boolean_index else name] += 1
+            frames = [f for f in traceback.extract_stack() if "/t3fast/" in f.filename
+                      and not f.filename.endswith("host_syncs.py")]
+            if frames:
+                f = frames[-1]
+                self.by_caller[f"{f.filename.rsplit('/t3fast/', 1)[1]}:{f.name}"] += 1
+        return func(*args, **(kwargs or {}))

@@ -1,0 +1,55 @@
+"""Host synchronisations: :class:`~t3fast.host_syncs.SyncCounter` finds the ops a GPU run waits
+on, and the shipped forecast waits only where its agents are still lists of data-dependent
+length (detection, tracking, the box fit's samples, the voxels moved) and in its input checks."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from t3fast.data.sample import PRESENT
+from t3fast.data.synthetic import SyntheticDriving
+from t3fast.host_syncs import SyncCounter
+from t3fast.pretrained import load_world_model
+
+#: syncing ops of one forecast of the window below at this version; lower it as parts go sync-free
+MAX_FORECAST_SYNCS = 137
+#: (file, function) prefixes that may still read the device: the agents' variable-length records
+#: and the checks of the user's inputs
+ALLOWED = ("agents/tracker.py:", "agents/boxes.py:_samples", "agents/boxes.py:fit_agent_boxes",
+           "forecast/render.py:_fill_unseen", "forecast/render.py:__call__", "models/encoder.py:check_labels",
+           "models/forecast_inputs.py:check_")
+
+
+def test_counts_what_the_host_must_read():
+    x = torch.arange(6.0)
+    mask = x > 2
+    with SyncCounter() as counter:
+        x.sum().item()
+        mask.nonzero()
+        x[mask]
+        x[mask] = 0.0
+        torch.equal(x, x)
+        (x + 1).relu()[torch.tensor([0, 2])]  # an integer index: no wait
+        torch.where(mask, x, -x)
+    assert dict(counter.by_op) == {"_local_scalar_dense": 1, "nonzero": 1, "index (bool mask)": 2, "equal": 1}
+    assert counter.total == 5
+    assert set(counter.by_caller) == set()  # none of them ran in t3fast
+
+
+@pytest.fixture(scope="module")
+def forecast_syncs() -> SyncCounter:
+    model = load_world_model("wm-small")
+    sample = SyntheticDriving("val", 1, 20, stride=9)[0]
+    with SyncCounter() as counter:
+        model.forecast(sample.occ[None, : PRESENT + 1], sample.ego_poses[None, : PRESENT + 1])
+    return counter
+
+
+def test_the_shipped_forecast_waits_only_in_its_agents_records_and_input_checks(forecast_syncs):
+    unexpected = {caller: n for caller, n in forecast_syncs.by_caller.items() if not caller.startswith(ALLOWED)}
+    assert not unexpected, f"syncing ops outside the agents' records and the input checks: {unexpected}"
+
+
+def test_the_shipped_forecast_waits_no_more_often_than_before(forecast_syncs):
+    assert forecast_syncs.total <= MAX_FORECAST_SYNCS, forecast_syncs.by_caller.most_common(10)

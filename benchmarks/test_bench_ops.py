@@ -216,5 +216,6 @@ def test_bev_components(benchmark, impl):
     the tracker ran before (a host synchronisation per round)."""
     benchmark.group = "bev_components agents [6,200,200]"
     masks = _agent_masks()
-    benchmark.extra_info.update(bytes=float(masks.numel() * 9))  # the mask read, int64 labels written
+    # no arithmetic to speak of (comparisons and pointer chasing); bytes: the mask read, int64 labels written
+    benchmark.extra_info.update(flops=0.0, bytes=float(masks.numel() * 9))
     benchmark.pedantic(synchronized(lambda: IMPLS[impl].bev_components(masks)), rounds=rounds(20), warmup_rounds=2)

@@ -13,7 +13,9 @@ Modes:
                    (``mode="default"`` on the CPU)
 
 Each row: median and 90th-percentile time of one call, FPS (windows forecast per second:
-batch / median), and the peak memory of the mode (``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
+batch / median), in eager modes the host synchronisations of one call
+(:class:`~t3fast.host_syncs.SyncCounter`), and the peak memory of the mode
+(``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
 the model was built: weights, inputs, activations and graph pools).
 """
 
@@ -145,7 +147,15 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int 
         warmup = 1 if quick else (3 if mode == "compile" else 2)
         times = measure(fn, device, warmup, min_iters=2 if quick else 10, max_iters=2 if quick else 200,
                         seconds=0.0 if quick else 2.0)
-    row["setup_s"] = time.perf_counter() - start - sum(times)  # capture / compilation and warm-up
+        counting = time.perf_counter()
+        if mode.startswith("eager"):  # what a call waits on (t3fast.host_syncs), counted in one more call
+            from t3fast.host_syncs import SyncCounter
+
+            with SyncCounter() as counter:
+                fn()
+            row["host_syncs"] = counter.total
+        counting = time.perf_counter() - counting
+    row["setup_s"] = time.perf_counter() - start - sum(times) - counting  # capture / compilation and warm-up
     row["iters"] = len(times)
     row["median_ms"] = statistics.median(times) * 1e3
     row["p90_ms"] = sorted(times)[math.ceil(0.9 * len(times)) - 1] * 1e3  # nearest rank

@@ -20,7 +20,7 @@ from t3fast.agents.tracker import move_agents
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, in_classes
 from t3fast.forecast.records import AgentMoves, Past, Scene
 from t3fast.models.decoder import TriplaneDecoder
-from t3fast.models.ego_motion import frame_queries, unwarp_sequence
+from t3fast.models.ego_motion import frame_queries, unwarp_sequence, voxel_queries
 from t3fast.models.triplane import Triplane
 
 _AGENTS = torch.tensor(AGENT_CLASSES)
@@ -170,12 +170,12 @@ class DrawAgents:
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
         """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there."""
         for k, future in enumerate(futures):
-            points = frame_queries(poses[:, k].float(), self.decoder.grid)
             for n in range(labels.shape[0]):
                 frame = labels[n, k].view(-1)
                 unseen = (frame == IGNORE).nonzero().squeeze(1)
                 if unseen.numel():
-                    decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), points[n : n + 1, unseen])
+                    points = voxel_queries(poses[n : n + 1, k].float(), self.decoder.grid, unseen)
+                    decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), points)
                     frame[unseen] = beyond_present(decoded.view(-1))
 
     @staticmethod

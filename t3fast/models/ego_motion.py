@@ -158,14 +158,30 @@ def frame_queries(poses: Tensor, grid: tuple[int, int, int]) -> Tensor:
     forecasting frame's grid take its outermost column: the forecast continues its edge there
     (a road running out of the grid goes on) instead of declaring what it cannot see free."""
     nx, ny, nz = grid
-    dev, dt = poses.device, poses.dtype
+    x, y, z = _query_axes(poses, grid)
+    b = poses.shape[0]
+    return torch.stack(
+        [x[..., None].expand(b, nx * ny, nz), y[..., None].expand(b, nx * ny, nz), z.expand(b, nx * ny, nz)], -1
+    ).reshape(b, nx * ny * nz, 3)
+
+
+def voxel_queries(poses: Tensor, grid: tuple[int, int, int], voxels: Tensor) -> Tensor:
+    """:func:`frame_queries` of the flat voxel indices ``voxels`` ``[N]`` only (the same for
+    every frame): ``[B, N, 3]``, equal to ``frame_queries(poses, grid)[:, voxels]`` without
+    building the other voxels' points."""
+    x, y, z = _query_axes(poses, grid)
+    column, level = voxels // grid[2], voxels % grid[2]
+    return torch.stack([x[:, column], y[:, column], z[level].expand(poses.shape[0], -1)], -1)
+
+
+def _query_axes(poses: Tensor, grid: tuple[int, int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """The normalised x and y ``[B, X * Y]`` of each column of frames at ``poses`` ``[B, 3]``
+    (clamped to the forecasting frame's outermost voxel centres) and the levels' z ``[Z]``."""
+    nx, ny, nz = grid
     src = _columns_in(poses, (nx, ny))  # metres in the forecasting frame
     # clamped to the outermost voxel centres, so a column beyond the grid decodes exactly as the
     # last one inside (planes and positional encoding alike)
     x = (src[..., 0] / (VOXEL_SIZE * nx / 2)).clamp(-1 + 1 / nx, 1 - 1 / nx)
     y = (src[..., 1] / (VOXEL_SIZE * ny / 2)).clamp(-1 + 1 / ny, 1 - 1 / ny)
-    z = (2 * torch.arange(nz, device=dev, dtype=dt) + 1) / nz - 1
-    b = poses.shape[0]
-    return torch.stack(
-        [x[..., None].expand(b, nx * ny, nz), y[..., None].expand(b, nx * ny, nz), z.expand(b, nx * ny, nz)], -1
-    ).reshape(b, nx * ny * nz, 3)
+    z = (2 * torch.arange(nz, device=poses.device, dtype=poses.dtype) + 1) / nz - 1
+    return x, y, z

@@ -9,10 +9,12 @@ from t3fast.data.classes import FREE
 from t3fast.models.ego_motion import (
     compose,
     extrapolate_poses,
+    frame_queries,
     planar_poses,
     poses_from_displacements,
     relative,
     unwarp_sequence,
+    voxel_queries,
     warp_sequence,
     warp_volume,
 )
@@ -102,3 +104,11 @@ def test_sequence_round_trip_keeps_the_overlap():
     kept = there_and_back[:, 1] != FREE
     assert (there_and_back[:, 1][kept] == frames[:, 1][kept]).float().mean() > 0.99
     assert kept.float().mean() > 0.9
+
+
+@pytest.mark.parametrize("grid", [(200, 200, 16), (7, 5, 3)])
+def test_voxel_queries_are_frame_queries_at_those_voxels(grid):
+    poses = torch.tensor([[3.0, 0.5, 0.1], [-2.0, 1.0, -0.3]])
+    voxels = torch.randint(0, grid[0] * grid[1] * grid[2], (500,), generator=torch.Generator().manual_seed(0))
+    assert torch.equal(voxel_queries(poses, grid, voxels), frame_queries(poses, grid)[:, voxels])
+    assert voxel_queries(poses, grid, voxels[:0]).shape == (2, 0, 3)

@@ -19,7 +19,6 @@ plans all steps in one pass.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
@@ -110,7 +109,9 @@ class RoutePlanner(nn.Module):
         onehot = present.new_zeros(b, len(COMMANDS))
         if command is not None:
             given = (command >= 0).unsqueeze(1)
-            onehot = F.one_hot(command.long().clamp(min=0), len(COMMANDS)).to(present.dtype) * given
+            # compared, not F.one_hot, which reads the ids' range on the host (the forecast checks them)
+            kinds = torch.arange(len(COMMANDS), device=command.device)
+            onehot = (command.long()[:, None] == kinds).to(present.dtype) * given
         recent = past_actions[:, -self.past :]
         # metres per step / 5: the inputs stay near unit scale up to 10 m/s
         features = [recent.flatten(1).to(present.dtype) / 5.0, onehot]

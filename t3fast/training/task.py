@@ -20,9 +20,11 @@ class Task(Protocol):
         collate: turns a list of dataset items into a batch. The trainer moves the batch's
             tensors (in dicts, lists, tuples, or objects with a ``.to(device)``) to the device.
         training_step: ``(model, batch) -> (loss, values)``: the scalar loss to back-propagate
-            and floats to log (the same keys on every rank). ``model`` may be the DDP wrapper:
-            compute the loss through ``model(...)`` so gradients are synchronised. Runs under
-            autocast when AMP is on.
+            and the values to log (the same keys on every rank): floats, or 0-dim tensors,
+            which the trainer reads after the backward, all at once (reading each in the step
+            would make the host wait for the forward before it can launch the backward).
+            ``model`` may be the DDP wrapper: compute the loss through ``model(...)`` so
+            gradients are synchronised. Runs under autocast when AMP is on.
         evaluate: ``model -> metrics``; must contain ``"score"`` (higher is better; decides
             ``best.pt``). Called on every rank with the plain module in eval mode under
             ``torch.no_grad()``; the task may all-reduce. Logged by rank 0. Random numbers drawn
@@ -40,7 +42,7 @@ class Task(Protocol):
 
     def collate(self, batch_list: list[Any]) -> Any: ...
 
-    def training_step(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, float]]: ...
+    def training_step(self, model: nn.Module, batch: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor | float]]: ...
 
     def evaluate(self, model: nn.Module) -> dict[str, float]: ...
 

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
@@ -182,12 +182,13 @@ class Trainer:
         with torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None):
             loss, values = self.task.training_step(self.model, batch)
         self.scaler.scale(loss).backward()
-        logs = {"loss": float(loss.detach()), **{k: float(v) for k, v in values.items()}}
-        self._check_loss(logs)  # before the optimiser step: the weights stay those of the last good step
-        logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
+        terms = {"loss": loss.detach(), **values}
         if self.cfg.grad_clip:  # None or 0: no clipping
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
-            logs["grad_norm"] = float(nn.utils.clip_grad_norm_(self.module.parameters(), self.cfg.grad_clip))
+            terms["grad_norm"] = nn.utils.clip_grad_norm_(self.module.parameters(), self.cfg.grad_clip)
+        logs = read_values(terms)
+        self._check_loss(logs)  # before the optimiser step: the weights stay those of the last good step
+        logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
         self.scaler.step(self.optimizer)
         self.scaler.update()
         self.scheduler.step()
@@ -350,6 +351,15 @@ class Trainer:
             return path
         # check_out_dir has made sure out_dir/last.pt exists when resuming
         return self.out_dir / "last.pt" if self.cfg.resume else None
+
+
+def read_values(values: dict[str, Tensor | float]) -> dict[str, float]:
+    """The values a step logs as floats: the tensors among them read from the device at once
+    (one host synchronisation per step, after the backward, instead of one per value)."""
+    tensors = {k: v for k, v in values.items() if isinstance(v, Tensor)}
+    read = torch.stack([v.detach().double().reshape(()) for v in tensors.values()]).tolist() if tensors else []
+    floats = dict(zip(tensors, read))
+    return {k: floats[k] if k in floats else float(v) for k, v in values.items()}
 
 
 def _amp_dtype(enabled: bool, device: torch.device) -> torch.dtype | None:

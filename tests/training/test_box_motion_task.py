@@ -15,6 +15,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.forecast.agents import fitted_boxes
+from t3fast.host_syncs import SyncCounter
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 from t3fast.models.ego_motion import planar_poses
@@ -117,6 +118,9 @@ def test_the_network_learns_the_agents_it_sees(records, world_ckpt):
     batch = task.collate(items)
     tracker = class_balanced_mean(agent_errors(torch.zeros(len(samples), 6, 3), batch), batch)
     opt = torch.optim.Adam(model.box_motion.parameters(), lr=3e-3)
+    with SyncCounter() as counter:  # the logged values are read by the trainer after the backward
+        task.training_step(model, batch)
+    assert counter.total == 0, counter.by_caller
     for _ in range(150):
         loss, values = task.training_step(model, batch)
         opt.zero_grad()

@@ -14,6 +14,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.forecast.agents import measured_velocities
+from t3fast.host_syncs import SyncCounter
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.flow_forecaster import tracker_motion
@@ -122,6 +123,10 @@ def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
     batch = cache.all()
     tracker = sum(flow_terms(tracker_motion(batch.velocity, 6), batch.targets))
     opt = torch.optim.Adam(model.forecaster.motion_head.parameters(), lr=3e-3)
+    with SyncCounter() as counter:  # the logged values are read by the trainer after the backward
+        task.training_step(model, batch)
+    # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
+    assert dict(counter.by_caller) == {"training/motion/task.py:training_step": 1}
     for _ in range(200):
         loss, _ = task.training_step(model, batch)
         opt.zero_grad()

@@ -13,6 +13,7 @@ from t3fast.data.route import LEFT, RIGHT, STRAIGHT
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
+from t3fast.host_syncs import SyncCounter
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.planner import constant_turn_rate
@@ -171,7 +172,10 @@ def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_o
     with torch.no_grad():
         planner.head[-1].bias[-3:] = torch.tensor([0.0, 5.0, 0.0])  # mode 1 scores best
     torch.testing.assert_close(planner(*batch.inputs()), model(*batch.inputs())[0][:, 1])
-    loss, values = task.training_step(model, batch)
+    with SyncCounter() as counter:  # the logged values are read by the trainer after the backward
+        loss, values = task.training_step(model, batch)
+    # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
+    assert dict(counter.by_caller) == {"training/planner/task.py:training_step": 1}
     assert {"closest_l2", "mode_choice"} <= set(values) and torch.isfinite(loss)
     loss.backward()
     assert planner.head[-1].weight.grad.abs().sum() > 0

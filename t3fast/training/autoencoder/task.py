@@ -50,7 +50,7 @@ class AutoencoderTask:
     def samples_in(self, batch: Tensor) -> int:
         return batch.shape[0]
 
-    def training_step(self, model: nn.Module, labels: Tensor) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, labels: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         loss_cfg = self.cfg.loss
         if loss_cfg.full_grid:
             logits, targets = model(labels), labels.long()
@@ -61,7 +61,7 @@ class AutoencoderTask:
             logits = model(labels, points)
         weights = self._weights(labels.device) if loss_cfg.class_weights else None
         loss, parts = occupancy_loss(logits, targets, class_weights=weights, lovasz_weight=loss_cfg.lovasz_weight)
-        return loss, {k: float(v) for k, v in parts.items()}
+        return loss, {k: v.detach() for k, v in parts.items()}
 
     def _weights(self, device: torch.device) -> Tensor:
         """Class-frequency weights from the first training frames (computed once; no flips,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from t3fast.agents.box_kinematics import BOX_CLASSES
@@ -29,4 +30,8 @@ def class_balanced_mean(errors: Tensor, fields: dict[str, Tensor]) -> Tensor:
     per_class_sum = classes.T @ (errors * valid).sum(1)
     per_class_count = classes.T @ valid.sum(1)
     present = per_class_count > 0
-    return (per_class_sum[present] / per_class_count[present]).mean() if bool(present.any()) else errors.sum() * 0
+    means = per_class_sum / per_class_count.clamp(min=1) * present  # 0 for a class absent here
+    classes_present = present.sum()
+    # no class present: 0, still a function of the errors (a batch without agents trains nothing);
+    # no mask or branch on the values, so the step never waits on the device
+    return torch.where(classes_present > 0, means.sum() / classes_present.clamp(min=1), errors.sum() * 0)

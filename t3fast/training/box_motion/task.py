@@ -115,14 +115,14 @@ class BoxMotionTask:
     def samples_in(self, batch: dict[str, Tensor]) -> int:
         return batch["views"].shape[0]
 
-    def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
         flip = (torch.rand(self.samples_in(batch), generator=self._generator) < 0.5).to(batch["views"].device)
         batch = mirror_agents(batch, flip)
         correction = model(batch["views"].float(), batch["features"])
         loss = class_balanced_mean(agent_errors(correction, batch), batch)
         with torch.no_grad():
             tracker = class_balanced_mean(agent_errors(torch.zeros_like(correction), batch), batch)
-        return loss, {"tracker": tracker.item()}
+        return loss, {"tracker": tracker}
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """On the held-out scenes' agents, the class-balanced landing error (metres) of the

@@ -50,13 +50,13 @@ def mirror_left_right(batch: MotionWindows) -> MotionWindows:
 
 
 def motion_head_loss(displacements: Tensor, targets: AgentTargets,
-                     cfg: MotionConfig) -> tuple[Tensor, dict[str, float]]:
+                     cfg: MotionConfig) -> tuple[Tensor, dict[str, Tensor]]:
     """The loss of the module doc for the head's displacements ``[B, S, 2, H, W]`` and its parts."""
     error, is_moving, is_parked = agent_errors(displacements, targets, cfg.min_flow)
     moving, parked = masked_mean(error, is_moving), masked_mean(error, is_parked)
     miss = masked_mean(1 - torch.exp(-0.5 * (error / cfg.precision_scale).square()), is_moving)
     loss = moving + cfg.parked_weight * parked + cfg.precision_weight * miss
-    return loss, {"flow_moving": moving.item(), "flow_parked": parked.item(), "miss": miss.item()}
+    return loss, {"flow_moving": moving.detach(), "flow_parked": parked.detach(), "miss": miss.detach()}
 
 
 class MotionHeadTraining(T3Former):
@@ -112,14 +112,14 @@ class MotionTask:
     def samples_in(self, batch: MotionWindows) -> int:
         return len(batch)
 
-    def training_step(self, model: nn.Module, batch: MotionWindows) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, batch: MotionWindows) -> tuple[Tensor, dict[str, Tensor]]:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
         displacements = model(batch.velocity, batch.present, batch.previous)
         loss, parts = motion_head_loss(displacements, batch.targets, self.cfg)
         with torch.no_grad():
             prior = flow_terms(tracker_motion(batch.velocity, displacements.shape[1]), batch.targets, self.cfg.min_flow)
-        return loss, {**parts, "tracker_moving": prior[0].item(), "tracker_parked": prior[1].item()}
+        return loss, {**parts, "tracker_moving": prior[0], "tracker_parked": prior[1]}
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """On every validation window, per agent and step, the error (plane cells, L1) of the

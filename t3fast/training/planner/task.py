@@ -111,7 +111,7 @@ class PlannerTask:
     def samples_in(self, batch: PlanWindows) -> int:
         return batch.present.shape[0]
 
-    def training_step(self, model: nn.Module, batch: PlanWindows) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, batch: PlanWindows) -> tuple[Tensor, dict[str, Tensor]]:
         if bool(torch.rand((), generator=self._generator) < 0.5):
             batch = mirror_left_right(batch)
         command = drop_commands(batch.command, self.cfg.command_dropout, self._generator)
@@ -124,12 +124,12 @@ class PlannerTask:
         miss = (1 - torch.exp(-0.5 * (errors / self.cfg.precision_scale).square())).mean()
         base = plan_error(constant_turn_rate(batch.past_actions, plans.shape[2]), batch.future_actions)
         loss = distance + self.cfg.precision_weight * miss
-        values = {"plan_l2": every[rows, scores.argmax(1)].mean().item(), "ctr_l2": base.mean().item(),
-                  "plan_miss": miss.item()}
+        values = {"plan_l2": every[rows, scores.argmax(1)].mean().detach(), "ctr_l2": base.mean().detach(),
+                  "plan_miss": miss.detach()}
         if plans.shape[1] > 1:  # the scores learn which mode wins
             choice = F.cross_entropy(scores, winner)
             loss = loss + choice
-            values.update(closest_l2=distance.item(), mode_choice=choice.item())
+            values.update(closest_l2=distance.detach(), mode_choice=choice.detach())
         return loss, values
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:

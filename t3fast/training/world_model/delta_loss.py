@@ -36,7 +36,7 @@ PLANES = ("xy", "xz", "yz")
 
 
 def delta_rollout_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig,
-                       first: int) -> tuple[Tensor, dict[str, float]]:
+                       first: int) -> tuple[Tensor, dict[str, Tensor]]:
     """Loss of ``loss.rollout_steps`` predicted steps of ``batch`` from future step ``first``
     (see the module doc); the model is a :class:`~t3fast.training.world_model.forwards.RolloutModel` with the
     Delta forecaster (or DDP around one)."""
@@ -65,4 +65,4 @@ def delta_rollout_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossCon
     action = (predicted - batch.future_actions[:, first : first + steps]).square().sum(-1).mean()
     total = latent + loss.action_weight * action if planner_trains(model) else latent
     parts = {"latent": latent, "copy_latent": copy, "action": action}
-    return total, {k: float(v.detach()) for k, v in parts.items()}
+    return total, {k: v.detach() for k, v in parts.items()}

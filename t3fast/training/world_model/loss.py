@@ -41,7 +41,7 @@ def planner_trains(model: nn.Module) -> bool:
 def rollout_loss(
     model: nn.Module, planes: Triplane, occ: Tensor, past_actions: Tensor, future_actions: Tensor, first: int,
     steps: int, loss: WorldLossConfig,
-) -> tuple[Tensor, dict[str, float]]:
+) -> tuple[Tensor, dict[str, Tensor]]:
     """Stage-2 loss of one rollout of ``steps`` steps starting at future step ``first``.
 
     With ``loss.pushforward`` the history of step ``first`` holds the model's own predictions of
@@ -72,4 +72,4 @@ def rollout_loss(
     if planner_trains(model):
         total = total + loss.action_weight * act
     parts = {"triplane": tri, "occupancy": occ_loss, "action": act}
-    return total, {k: float(v.detach()) for k, v in parts.items()}
+    return total, {k: v.detach() for k, v in parts.items()}

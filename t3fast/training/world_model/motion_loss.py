@@ -111,7 +111,7 @@ def flow_terms(displacements: Tensor, targets: AgentTargets, min_flow: float = 0
 
 
 def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, min_flow: float = 0.5,
-                plan: PlanBatch | None = None) -> tuple[Tensor, dict[str, float]]:
+                plan: PlanBatch | None = None) -> tuple[Tensor, dict[str, Tensor]]:
     """Loss of the flow forecaster's six future xy planes of ``batch`` (see the module doc); an
     agent moves when its true mean motion is at least ``min_flow`` plane cells. With ``plan``
     (a route planner that trains), plus ``action_weight`` x its mean position error (metres,
@@ -143,4 +143,4 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
         error = plan_error(planned, plan.future_actions)
         total = total + loss.action_weight * error.mean()
         parts.update(plan_l2=error.mean(), plan_l2_3s=error[:, -1].mean())
-    return total, {k: float(v.detach()) for k, v in parts.items()}
+    return total, {k: v.detach() for k, v in parts.items()}

@@ -113,7 +113,7 @@ class WorldModelTask:
     def samples_in(self, batch: SequenceBatch | AlignedBatch) -> int:
         return batch.planes.xy.shape[0] if isinstance(batch, AlignedBatch) else batch.occ.shape[0]
 
-    def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, float]]:
+    def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, Tensor]]:
         core = model.module if hasattr(model, "module") else model
         if isinstance(batch, AlignedBatch):
             # a route planner that trains learns on the same windows, mirrored left-right only

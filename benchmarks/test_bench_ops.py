@@ -219,3 +219,30 @@ def test_bev_components(benchmark, impl):
     # no arithmetic to speak of (comparisons and pointer chasing); bytes: the mask read, int64 labels written
     benchmark.extra_info.update(flops=0.0, bytes=float(masks.numel() * 9))
     benchmark.pedantic(synchronized(lambda: IMPLS[impl].bev_components(masks)), rounds=rounds(20), warmup_rounds=2)
+
+
+def _forecast_boxes(count: int = 40, steps: int = 6) -> tuple[torch.Tensor, ...]:
+    """Six future frames of a window and ``count`` agents' boxes in each (cars and pedestrians
+    spread over the grid), as the forecast's render draws them."""
+    g = torch.Generator().manual_seed(0)
+    volume = torch.randint(0, 18, (steps, 200, 200, 16), generator=g, dtype=torch.uint8)
+    centre = torch.rand(steps, count, 2, generator=g, dtype=torch.float64) * 80 - 40
+    heading = torch.rand(steps, count, generator=g, dtype=torch.float64) * 6.28
+    half = torch.tensor([2.3, 0.95], dtype=torch.float64).expand(steps, count, 2)
+    boxes = torch.cat([centre, heading.cos()[..., None], heading.sin()[..., None], half], -1)
+    levels = torch.tensor([[1, 6]]).expand(count, 2).contiguous()
+    labels = torch.full((count,), 4, dtype=torch.uint8)
+    return tuple(t.to(DEVICE) for t in (volume, boxes, levels, labels))
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_draw_boxes(benchmark, impl):
+    """40 agents' boxes drawn into six 200 x 200 x 16 frames (the window of 53 x 53 columns
+    around each box's centre tested, as the render does); the reference marks every covered
+    voxel with its box's number and keeps the largest."""
+    benchmark.group = "draw_boxes 40 boxes x 6 frames [6,200,200,16]"
+    inputs = _forecast_boxes()
+    # no arithmetic to speak of per voxel; bytes: the frames read and written
+    benchmark.extra_info.update(flops=0.0, bytes=float(2 * inputs[0].numel()))
+    benchmark.pedantic(synchronized(lambda: IMPLS[impl].draw_boxes(*inputs, (-40.0, -40.0), 0.4, 26)),
+                       rounds=rounds(10), warmup_rounds=1)

@@ -198,4 +198,36 @@ inline void check_bev_mask(const at::Tensor& mask, const char* op) {
   T3FAST_CHECK(mask.scalar_type() == at::kBool, op, "mask must be bool, got ", mask.scalar_type());
 }
 
+// draw_boxes: volume uint8 [B, X, Y, Z], boxes float64 [B, M, 6], levels int64 [M, 2], labels
+// uint8 [M], all on one device; reach >= 0 columns.
+inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
+                             const at::Tensor& levels, const at::Tensor& labels,
+                             c10::ArrayRef<double> lower, double voxel_size, int64_t reach,
+                             const char* op) {
+  check_dim(volume, op, "volume", 4, "[B, X, Y, Z]");
+  T3FAST_CHECK(volume.scalar_type() == at::kByte, op, "volume must be uint8 labels, got ",
+               volume.scalar_type());
+  check_dim(boxes, op, "boxes", 3, "[B, M, 6]");
+  T3FAST_CHECK(boxes.scalar_type() == at::kDouble, op, "boxes must be float64, got ",
+               boxes.scalar_type());
+  check_size(boxes, op, "boxes", 0, volume.size(0), "batch, as volume");
+  check_size(boxes, op, "boxes", 2, 6, "x, y, cos, sin, half length, half width");
+  check_dim(levels, op, "levels", 2, "[M, 2]");
+  T3FAST_CHECK(levels.scalar_type() == at::kLong, op, "levels must be int64, got ",
+               levels.scalar_type());
+  check_size(levels, op, "levels", 0, boxes.size(1), "boxes, as boxes.shape[1]");
+  check_size(levels, op, "levels", 1, 2, "bottom, top");
+  check_dim(labels, op, "labels", 1, "[M]");
+  T3FAST_CHECK(labels.scalar_type() == at::kByte, op, "labels must be uint8, got ",
+               labels.scalar_type());
+  check_size(labels, op, "labels", 0, boxes.size(1), "boxes, as boxes.shape[1]");
+  check_same_device(boxes, volume, op, "boxes", "volume");
+  check_same_device(levels, volume, op, "levels", "volume");
+  check_same_device(labels, volume, op, "labels", "volume");
+  T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
+               lower.size(), " values");
+  T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
+  T3FAST_CHECK(reach >= 0, op, "reach must be at least 0, got ", reach);
+}
+
 }  // namespace t3fast

@@ -44,6 +44,14 @@ TORCH_LIBRARY(t3fast, m) {
   // and 1..n on it, numbered in the row-major order of each component's last cell, and n int64
   // [B] (a tensor: no host synchronisation).
   m.def("bev_components(Tensor mask) -> (Tensor, Tensor)");
+  // Boxes drawn into label volumes [B, X, Y, Z] (uint8): box m of batch element b (boxes
+  // [B, M, 6]: centre x, y, cos and sin of its heading, half length, half width; metres in the
+  // volume's frame) fills the levels levels[m, 0] <= z < levels[m, 1] of every column within
+  // reach columns of its centre column whose centre lies inside its footprint, and of its centre
+  // column, with labels[m]; a later box wins where they overlap. Returns the drawn volumes.
+  m.def(
+      "draw_boxes(Tensor volume, Tensor boxes, Tensor levels, Tensor labels, float[] lower, "
+      "float voxel_size, int reach) -> Tensor");
 }
 
 namespace {

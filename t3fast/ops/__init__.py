@@ -19,7 +19,8 @@ from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
-__all__ = ["axis_pool", "bev_components", "build_info", "delta_fuse", "label_conv3d", "reference", "triplane_decode"]
+__all__ = ["axis_pool", "bev_components", "build_info", "delta_fuse", "draw_boxes", "label_conv3d", "reference",
+           "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -195,3 +196,31 @@ def bev_components(mask: Tensor) -> tuple[Tensor, Tensor]:
         _checks.check_bev_components(mask)
         return reference.bev_components(mask)
     return ops.bev_components.default(mask)
+
+
+def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lower: Sequence[float],
+               voxel_size: float, reach: int) -> Tensor:
+    """Boxes drawn into label volumes, in order: a later box wins where boxes overlap.
+
+    Box ``m`` of volume ``b`` fills the levels ``levels[m, 0] <= z < levels[m, 1]`` of every
+    column within ``reach`` columns (along each axis) of its centre column whose centre lies
+    inside its footprint, and of its centre column (a small agent never vanishes), with
+    ``labels[m]``. A column's centre is ``lower + voxel_size * (index + 0.5)``.
+
+    Args:
+        volume: uint8 ``[B, X, Y, Z]`` labels to draw into (not modified).
+        boxes: float64 ``[B, M, 6]``: centre x, y, the cosine and sine of the heading, half the
+            length, half the width (metres, in the volume's frame).
+        levels: int64 ``[M, 2]``: bottom (inclusive) and top (exclusive) level of each box.
+        labels: uint8 ``[M]``: each box's class.
+        lower: the grid's lower x and y (metres); voxel_size: metres per column.
+        reach: how many columns from the centre column are tested.
+
+    Returns:
+        uint8 ``[B, X, Y, Z]``: ``volume`` with the boxes drawn.
+    """
+    if ops is None:
+        _checks.check_draw_boxes(volume, boxes, levels, labels, lower, voxel_size, reach)
+        return reference.draw_boxes(volume, boxes, levels, labels, lower, voxel_size, reach)
+    return ops.draw_boxes.default(volume, boxes, levels, labels, [float(v) for v in lower], float(voxel_size),
+                                  int(reach))

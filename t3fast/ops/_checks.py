@@ -219,3 +219,27 @@ def check_bev_components(mask: torch.Tensor) -> None:
     op = "bev_components"
     _check_dim(mask, op, "mask", 3, "[B, X, Y]")
     _require(mask.dtype == torch.bool, op, f"mask must be bool, got {_dtype_name(mask.dtype)}")
+
+
+def check_draw_boxes(volume: torch.Tensor, boxes: torch.Tensor, levels: torch.Tensor, labels: torch.Tensor,
+                     lower: Sequence[float], voxel_size: float, reach: int) -> None:
+    """draw_boxes' arguments, as csrc/checks.h checks them."""
+    op = "draw_boxes"
+    _check_dim(volume, op, "volume", 4, "[B, X, Y, Z]")
+    _require(volume.dtype == torch.uint8, op, f"volume must be uint8 labels, got {_dtype_name(volume.dtype)}")
+    _check_dim(boxes, op, "boxes", 3, "[B, M, 6]")
+    _require(boxes.dtype == torch.float64, op, f"boxes must be float64, got {_dtype_name(boxes.dtype)}")
+    _check_size(boxes, op, "boxes", 0, volume.shape[0], "batch, as volume")
+    _check_size(boxes, op, "boxes", 2, 6, "x, y, cos, sin, half length, half width")
+    _check_dim(levels, op, "levels", 2, "[M, 2]")
+    _require(levels.dtype == torch.int64, op, f"levels must be int64, got {_dtype_name(levels.dtype)}")
+    _check_size(levels, op, "levels", 0, boxes.shape[1], "boxes, as boxes.shape[1]")
+    _check_size(levels, op, "levels", 1, 2, "bottom, top")
+    _check_dim(labels, op, "labels", 1, "[M]")
+    _require(labels.dtype == torch.uint8, op, f"labels must be uint8, got {_dtype_name(labels.dtype)}")
+    _check_size(labels, op, "labels", 0, boxes.shape[1], "boxes, as boxes.shape[1]")
+    for name, t in (("boxes", boxes), ("levels", levels), ("labels", labels)):
+        _check_device(t, volume, op, name, "volume")
+    _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
+    _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
+    _require(reach >= 0, op, f"reach must be at least 0, got {reach}")

@@ -275,6 +275,14 @@ def _bev_components_fake(mask):
     return mask.new_empty(mask.shape, dtype=torch.long), mask.new_empty(mask.shape[:1], dtype=torch.long)
 
 
+# ---------------------------------------------------------------- draw_boxes
+@torch.library.register_fake("t3fast::draw_boxes")
+def _draw_boxes_fake(volume, boxes, levels, labels, lower, voxel_size, reach):
+    torch._check(volume.dim() == 4, lambda: f"volume must have 4 dims, got {volume.dim()}")
+    _check_like("draw_boxes", "volume", volume, labels=labels)
+    return torch.empty_like(volume, memory_format=torch.contiguous_format)
+
+
 # ---------------------------------------------------------------- autocast
 _autocast_lib = torch.library.Library("t3fast", "IMPL")
 

@@ -171,3 +171,48 @@ def bev_components(mask: Tensor) -> tuple[Tensor, Tensor]:
     rank = (last == index).cumsum(1)  # a component's number: how many components end up to its last cell
     out = torch.where(last > 0, rank.gather(1, (last - 1).clamp(min=0)), 0)
     return out.view(b, nx, ny), rank[:, -1]
+
+
+def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lower: Sequence[float],
+               voxel_size: float, reach: int) -> Tensor:
+    """Boxes drawn into label volumes, all at once: every box's window of ``(2 reach + 1)^2``
+    columns around its centre column, each covered voxel marked with the box's number, the
+    largest number of each voxel (the last box) giving its label.
+
+    Args:
+        volume: uint8 ``[B, X, Y, Z]``.
+        boxes: float64 ``[B, M, 6]``: centre x, y, the cosine and sine of the heading, half the
+            length, half the width (metres, in the volume's frame).
+        levels: int64 ``[M, 2]``: the levels ``bottom <= z < top`` each box fills.
+        labels: uint8 ``[M]``.
+        lower: the grid's lower x and y (metres); voxel_size: metres per column.
+        reach: columns from the centre column tested along each axis.
+
+    Returns:
+        the drawn volumes, uint8 ``[B, X, Y, Z]``.
+    """
+    b, nx, ny, nz = volume.shape
+    m, device = boxes.shape[1], volume.device
+    if m == 0 or volume.numel() == 0:
+        return volume.clone()
+    x, y, c, s, half_length, half_width = (boxes[..., i] for i in range(6))  # [B, M]
+    offsets = torch.arange(-reach, reach + 1, device=device)
+    rows = torch.floor((x - lower[0]) / voxel_size).long()[..., None] + offsets  # [B, M, W]
+    cols = torch.floor((y - lower[1]) / voxel_size).long()[..., None] + offsets
+    dx = (lower[0] + voxel_size * (rows.double() + 0.5) - x[..., None])[..., :, None]  # [B, M, W, 1]
+    dy = (lower[1] + voxel_size * (cols.double() + 0.5) - y[..., None])[..., None, :]  # [B, M, 1, W]
+    c, s = c[..., None, None], s[..., None, None]
+    inside = ((c * dx + s * dy).abs() <= half_length[..., None, None]) & (
+        (-s * dx + c * dy).abs() <= half_width[..., None, None])
+    inside[..., reach, reach] = True  # the column under the centre: small agents never vanish
+    inside &= ((rows >= 0) & (rows < nx))[..., :, None] & ((cols >= 0) & (cols < ny))[..., None, :]
+    z = torch.arange(nz, device=device)
+    spans = (z >= levels[:, :1]) & (z < levels[:, 1:])  # [M, Z]
+    cover = inside[..., None] & spans[:, None, None, :]  # [B, M, W, W, Z]
+    column = rows.clamp(0, nx - 1)[..., :, None] * ny + cols.clamp(0, ny - 1)[..., None, :]  # [B, M, W, W]
+    batch = torch.arange(b, device=device).view(b, 1, 1, 1, 1) * (nx * ny * nz)
+    voxel = batch + column[..., None] * nz + z
+    number = torch.arange(1, m + 1, device=device).view(1, m, 1, 1, 1) * cover  # 0 where a box does not draw
+    winner = torch.zeros(b * nx * ny * nz, dtype=torch.long, device=device).scatter_reduce_(
+        0, voxel.flatten(), number.flatten(), "amax").view(volume.shape)
+    return torch.where(winner > 0, labels[(winner - 1).clamp(min=0)], volume)

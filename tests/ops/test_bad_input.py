@@ -7,7 +7,7 @@ import re
 import pytest
 import torch
 
-from t3fast.ops import axis_pool, bev_components, delta_fuse, label_conv3d, triplane_decode
+from t3fast.ops import axis_pool, bev_components, delta_fuse, draw_boxes, label_conv3d, triplane_decode
 
 from .test_triplane_decode import make_inputs
 
@@ -164,3 +164,33 @@ def test_label_conv3d_rejects(labels, table, pattern):
 def test_bev_components_rejects(mask, pattern):
     with pytest.raises(RuntimeError, match=r"t3fast\.bev_components: .*" + pattern):
         bev_components(mask)
+
+
+def _draw_args(**change):
+    args = dict(volume=torch.zeros(2, 5, 6, 3, dtype=torch.uint8), boxes=torch.zeros(2, 4, 6, dtype=torch.float64),
+                levels=torch.zeros(4, 2, dtype=torch.long), labels=torch.zeros(4, dtype=torch.uint8),
+                lower=(-1.0, -1.0), voxel_size=0.4, reach=2)
+    args.update(change)
+    return args
+
+
+@pytest.mark.parametrize(
+    "change, pattern",
+    [
+        (dict(volume=torch.zeros(5, 6, 3, dtype=torch.uint8)), r"volume must have 4 dims \[B, X, Y, Z\], got 3 dims"),
+        (dict(volume=torch.zeros(2, 5, 6, 3, dtype=torch.int64)), r"volume must be uint8 labels, got Long"),
+        (dict(boxes=torch.zeros(2, 4, 6)), r"boxes must be float64, got Float"),
+        (dict(boxes=torch.zeros(3, 4, 6, dtype=torch.float64)), r"boxes\.shape\[0\] \(batch, as volume\) must be 2"),
+        (dict(boxes=torch.zeros(2, 4, 5, dtype=torch.float64)), r"boxes\.shape\[2\] \(x, y, cos, sin, half length"),
+        (dict(levels=torch.zeros(3, 2, dtype=torch.long)), r"levels\.shape\[0\] \(boxes, as boxes\.shape\[1\]\)"),
+        (dict(levels=torch.zeros(4, 2, dtype=torch.int32)), r"levels must be int64, got Int"),
+        (dict(labels=torch.zeros(4, dtype=torch.int64)), r"labels must be uint8, got Long"),
+        (dict(labels=torch.zeros(5, dtype=torch.uint8)), r"labels\.shape\[0\] \(boxes, as boxes\.shape\[1\]\)"),
+        (dict(lower=(0.0,)), r"lower must hold the grid's lower x and y, got 1 values"),
+        (dict(voxel_size=0.0), r"voxel_size must be positive, got 0"),
+        (dict(reach=-1), r"reach must be at least 0, got -1"),
+    ],
+)
+def test_draw_boxes_rejects(change, pattern):
+    with pytest.raises(RuntimeError, match=r"t3fast\.draw_boxes: .*" + pattern):
+        draw_boxes(**_draw_args(**change))

@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from t3fast import ops
 from t3fast.agents.tracker import cell_metres, follow_agents, frame_agents
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE
 
@@ -293,40 +294,22 @@ def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Te
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,
                      top: Tensor, label: Tensor, pose: Tensor) -> None:
-    """Draw boxes into a label volume ``[X, Y, Z]`` in place: box ``i`` (centre ``[m, 2]``, yaw,
-    length, width ``[m]`` in the present frame, metres) fills the levels ``bottom[i]`` to
+    """Draw boxes into a label volume ``[X, Y, Z]`` (uint8) in place: box ``i`` (centre ``[m, 2]``,
+    yaw, length, width ``[m]`` in the present frame, metres) fills the levels ``bottom[i]`` to
     ``top[i]`` (exclusive) of every column whose centre lies inside its footprint, and the
     column under its centre, with ``label[i]``; where boxes overlap, the later one's. ``pose``
     ``[3]``: the volume's ego pose in the present frame (the boxes are taken into it). The
     footprint test is :func:`~t3fast.data.classes.box_footprint`'s, for all boxes at once on
-    the volume's device, within ``DRAW_REACH`` columns of each box's centre column."""
-    nx, ny, nz = volume.shape
-    m, device = centre.shape[0], volume.device
-    if m == 0:
-        return
+    the volume's device (:func:`t3fast.ops.draw_boxes`), within ``DRAW_REACH`` columns of each
+    box's centre column."""
+    device = volume.device
     pose = pose.to(device, torch.float64)
     c, s = torch.cos(pose[2]), torch.sin(pose[2])
     d = centre.to(device, torch.float64) - pose[:2]
-    x, y = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
     heading = yaw.to(device, torch.float64) - pose[2]
-    offsets = torch.arange(-DRAW_REACH, DRAW_REACH + 1, device=device)
-    rows = torch.floor((x - GRID_LOWER[0]) / VOXEL_SIZE).long()[:, None] + offsets  # [m, W]
-    cols = torch.floor((y - GRID_LOWER[1]) / VOXEL_SIZE).long()[:, None] + offsets
-    dx = (GRID_LOWER[0] + VOXEL_SIZE * (rows.double() + 0.5) - x[:, None])[:, :, None]  # [m, W, 1]
-    dy = (GRID_LOWER[1] + VOXEL_SIZE * (cols.double() + 0.5) - y[:, None])[:, None, :]  # [m, 1, W]
-    ch, sh = torch.cos(heading)[:, None, None], torch.sin(heading)[:, None, None]
-    half_length = (length.to(device, torch.float64) / 2)[:, None, None]
-    half_width = (width.to(device, torch.float64) / 2)[:, None, None]
-    inside = ((ch * dx + sh * dy).abs() <= half_length) & ((-sh * dx + ch * dy).abs() <= half_width)
-    inside[:, DRAW_REACH, DRAW_REACH] = True  # the column under the centre: small agents never vanish
-    inside &= ((rows >= 0) & (rows < nx))[:, :, None] & ((cols >= 0) & (cols < ny))[:, None, :]
-    levels = torch.arange(nz, device=device)
-    spans = (levels >= bottom.to(device)[:, None]) & (levels < top.to(device)[:, None])  # [m, Z]
-    cover = inside[..., None] & spans[:, None, None, :]  # [m, W, W, Z]
-    voxel = ((rows.clamp(0, nx - 1)[:, :, None] * ny + cols.clamp(0, ny - 1)[:, None, :])[..., None] * nz + levels)
-    order = torch.arange(1, m + 1, device=device)[:, None, None, None] * cover  # 0 where a box does not draw
-    winner = torch.zeros(nx * ny * nz, dtype=torch.long, device=device).scatter_reduce_(
-        0, voxel.flatten(), order.flatten(), "amax")
-    painted = label.to(device, volume.dtype)[(winner - 1).clamp(min=0)]
-    flat = volume.view(-1)
-    flat.copy_(torch.where(winner > 0, painted, flat))
+    boxes = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], torch.cos(heading), torch.sin(heading),
+                         length.to(device, torch.float64) / 2, width.to(device, torch.float64) / 2], -1)
+    levels = torch.stack([bottom, top], -1).to(device, torch.long)
+    drawn = ops.draw_boxes(volume[None], boxes[None], levels, label.to(device, torch.uint8), GRID_LOWER[:2],
+                           VOXEL_SIZE, DRAW_REACH)
+    volume.copy_(drawn[0])

@@ -187,7 +187,8 @@ class Trainer:
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
             terms["grad_norm"] = nn.utils.clip_grad_norm_(self.module.parameters(), self.cfg.grad_clip)
         logs = read_values(terms)
-        self._check_loss(logs)  # before the optimiser step: the weights stay those of the last good step
+        # before the optimiser step: the weights stay those of the last good step
+        self._check_loss({k: v for k, v in logs.items() if k != "grad_norm"})
         logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
         self.scaler.step(self.optimizer)
         self.scaler.update()

@@ -289,7 +289,7 @@ def _tracks(agents: list[dict[str, Tensor]], match: Tensor, poses: Tensor) -> Te
         centroid = torch.cat([frame["centroid"], frame["centroid"].new_full((1, 2), math.nan)])  # last: not found
         index = torch.where(match[:, t] >= 0, match[:, t], centroid.shape[0] - 1)
         tracks.append(cell_metres(centroid[index], poses[t]))
-    return torch.stack(tracks, 1) if tracks else poses.new_full((*match.shape, 2), math.nan)
+    return torch.stack(tracks, 1)
 
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,

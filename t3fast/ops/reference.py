@@ -140,7 +140,6 @@ def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
     return F.conv3d(one_hot, weight, padding=1)
 
 
-
 def bev_components(mask: Tensor) -> tuple[Tensor, Tensor]:
     """8-connected components of BEV masks ``[B, X, Y]`` (bool) by label propagation: every
     cell takes the largest label of its 3x3 neighbourhood and then the label its label points

@@ -246,3 +246,39 @@ def test_draw_boxes(benchmark, impl):
     benchmark.extra_info.update(flops=0.0, bytes=float(2 * inputs[0].numel()))
     benchmark.pedantic(synchronized(lambda: IMPLS[impl].draw_boxes(*inputs, (-40.0, -40.0), 0.4, 26)),
                        rounds=rounds(10), warmup_rounds=1)
+
+
+def _window_fit() -> tuple:
+    """The box fit of a synthetic validation window's agents: the arguments
+    :func:`~t3fast.agents.boxes.fit_agent_boxes` passes :func:`t3fast.ops.box_fit`."""
+    from unittest import mock
+
+    from t3fast import ops
+    from t3fast.agents import boxes
+    from t3fast.data.sample import PRESENT
+    from t3fast.data.synthetic import SyntheticDriving
+    from t3fast.models.ego_motion import planar_poses
+
+    sample = SyntheticDriving("val", 1, 20, stride=9)[0]
+    poses = planar_poses(sample.ego_poses[None], PRESENT)[0, : PRESENT + 1].double()
+    with mock.patch.object(boxes.ops, "box_fit", wraps=ops.box_fit) as spy:
+        boxes.fit_agent_boxes(sample.occ[: PRESENT + 1], poses)
+    return tuple(a.to(DEVICE) if isinstance(a, torch.Tensor) else a for a in spy.call_args.args)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_box_fit(benchmark, impl):
+    """One window's agents' boxes fitted (100 Adam steps on every agent's samples in six
+    frames); the reference gathers the samples with tensor ops and steps them with one op
+    per term (the fit as the forecast ran it before)."""
+    benchmark.group = "box_fit one window's agents, 100 Adam steps"
+    args = _window_fit()
+    ids, track, centroid, poses, start, reach, lower, voxel, window, near, iters = args[:11]
+    fitted = reach[0] > 0
+    samples = IMPLS["reference"].box_fit_samples(ids[0], track[0, fitted], centroid[0, fitted], poses[0],
+                                        reach[0, fitted].clamp(max=window), lower, voxel, near)["agent"].numel()
+    # about 60 flops per sample and step (its margin, sigmoid and gradient row); bytes: the
+    # frames' component maps read once
+    benchmark.extra_info.update(flops=60.0 * samples * iters, bytes=float(ids.numel() * 8), agents=track.shape[1],
+                                samples=samples)
+    benchmark.pedantic(synchronized(lambda: IMPLS[impl].box_fit(*args)), rounds=rounds(10), warmup_rounds=1)

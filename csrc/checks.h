@@ -6,6 +6,7 @@
 #include <ATen/ATen.h>
 
 #include <string>
+#include <vector>
 
 namespace t3fast {
 
@@ -228,6 +229,55 @@ inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
                lower.size(), " values");
   T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
   T3FAST_CHECK(reach >= 0, op, "reach must be at least 0, got ", reach);
+}
+
+// box_fit's arguments: ids [B, T, X, Y] int64, track [B, n, T] int64, centroid [B, n, T, 2],
+// poses [B, T, 3], start [B, n, 7], reach [B, n] (float64), all on one device.
+inline void check_box_fit(const at::Tensor& ids, const at::Tensor& track, const at::Tensor& centroid,
+                          const at::Tensor& poses, const at::Tensor& start, const at::Tensor& reach,
+                          c10::ArrayRef<double> lower, double voxel_size, int64_t window,
+                          int64_t near, int64_t iters, double lr, c10::ArrayRef<double> softness,
+                          const char* op) {
+  check_dim(ids, op, "ids", 4, "[B, T, X, Y]");
+  T3FAST_CHECK(ids.scalar_type() == at::kLong, op, "ids must be int64, got ", ids.scalar_type());
+  check_dim(track, op, "track", 3, "[B, n, T]");
+  T3FAST_CHECK(track.scalar_type() == at::kLong, op, "track must be int64, got ",
+               track.scalar_type());
+  check_size(track, op, "track", 0, ids.size(0), "batch, as ids");
+  check_size(track, op, "track", 2, ids.size(1), "frames, as ids.shape[1]");
+  const int64_t B = ids.size(0), n = track.size(1), T = ids.size(1);
+  const struct {
+    const at::Tensor& t;
+    const char* name;
+    const char* layout;
+    std::vector<int64_t> shape;
+  } floats[] = {{centroid, "centroid", "[B, n, T, 2]", {B, n, T, 2}},
+                {poses, "poses", "[B, T, 3]", {B, T, 3}},
+                {start, "start", "[B, n, 7]", {B, n, 7}},
+                {reach, "reach", "[B, n]", {B, n}}};
+  for (const auto& f : floats) {
+    check_dim(f.t, op, f.name, static_cast<int64_t>(f.shape.size()), f.layout);
+    T3FAST_CHECK(f.t.scalar_type() == at::kDouble, op, f.name, " must be float64, got ",
+                 f.t.scalar_type());
+    for (size_t d = 0; d < f.shape.size(); ++d) {
+      T3FAST_CHECK(f.t.size(static_cast<int64_t>(d)) == f.shape[d], op, f.name, " must be ",
+                   f.layout, " = ", c10::IntArrayRef(f.shape), " (ids ", ids.sizes(), ", track ",
+                   track.sizes(), "), got ", f.t.sizes());
+    }
+    check_same_device(f.t, ids, op, f.name, "ids");
+  }
+  check_same_device(track, ids, op, "track", "ids");
+  T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
+               lower.size(), " values");
+  T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
+  T3FAST_CHECK(window >= 0 && window <= 1024, op, "window must be in [0, 1024] cells, got ",
+               window);
+  T3FAST_CHECK(near >= 0 && near <= 16, op, "near must be in [0, 16] cells, got ", near);
+  T3FAST_CHECK(iters >= 0, op, "iters must be at least 0, got ", iters);
+  T3FAST_CHECK(lr > 0, op, "lr must be positive, got ", lr);
+  T3FAST_CHECK(softness.size() == 2 && softness[0] > 0 && softness[1] > 0, op,
+               "softness must hold two positive widths (first and last iteration), got ",
+               softness);
 }
 
 }  // namespace t3fast

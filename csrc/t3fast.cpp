@@ -52,6 +52,15 @@ TORCH_LIBRARY(t3fast, m) {
   m.def(
       "draw_boxes(Tensor volume, Tensor boxes, Tensor levels, Tensor labels, float[] lower, "
       "float voxel_size, int reach) -> Tensor");
+  // Agents' boxes fitted to their columns in every frame of a window (ids [B, T, X, Y] the
+  // frames' component maps, track [B, n, T] each agent's component per frame or -1, centroid
+  // [B, n, T, 2] its column centroid in cells, poses [B, T, 3], start [B, n, 7] the boxes to
+  // start from, reach [B, n] cells sampled around the centroid, <= 0 not fitted): iters Adam
+  // steps on the soft footprint loss. Returns (boxes [B, n, 7], footprint IoU [B, n]).
+  m.def(
+      "box_fit(Tensor ids, Tensor track, Tensor centroid, Tensor poses, Tensor start, "
+      "Tensor reach, float[] lower, float voxel_size, int window, int near, int iters, float lr, "
+      "float[] softness, float accel_prior) -> (Tensor, Tensor)");
 }
 
 namespace {

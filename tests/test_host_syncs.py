@@ -1,6 +1,6 @@
 """Host synchronisations: :class:`~t3fast.host_syncs.SyncCounter` finds the ops a GPU run waits
 on, and the shipped forecast waits only where its agents are still lists of data-dependent
-length (detection, tracking, the box fit's samples, the voxels moved) and in its input checks."""
+length (detection, tracking, the voxels moved) and in its input checks."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from t3fast.host_syncs import SyncCounter
 from t3fast.pretrained import load_world_model
 
 #: syncing ops of one forecast of the window below at this version; lower it as parts go sync-free
-MAX_FORECAST_SYNCS = 137
+MAX_FORECAST_SYNCS = 110
 #: (file, function) prefixes that may still read the device: the agents' variable-length records
 #: and the checks of the user's inputs
-ALLOWED = ("agents/tracker.py:", "agents/boxes.py:_samples", "agents/boxes.py:fit_agent_boxes",
+ALLOWED = ("agents/tracker.py:", "agents/boxes.py:fit_agent_boxes",
            "forecast/render.py:_fill_unseen", "forecast/render.py:__call__", "models/encoder.py:check_labels",
            "models/forecast_inputs.py:check_")
 

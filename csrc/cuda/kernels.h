@@ -251,5 +251,29 @@ cudaError_t draw_boxes(const double* boxes, const int64_t* levels, const uint8_t
                        double lower_y, double voxel, int reach, int* winner, uint8_t* out,
                        cudaStream_t stream);
 
+// ------------------------------------------------------------------ box_fit
+
+// Boxes of agents fitted to their columns (see csrc/cpu/box_fit.cpp and box_fit_math.h), for
+// batch windows of count agents and frames frames of x * y columns: ids [batch, frames, x, y],
+// track [batch, count, frames], centroid [batch, count, frames, 2], poses [batch, frames, 3],
+// start [batch, count, 7], reach [batch, count]; params [batch, count, 7] and iou
+// [batch, count] receive the result. samples (4 floats per record) and sampled (int32) are
+// scratch of box_fit_scratch(...) records and batch * count * frames counts.
+struct BoxFitArgs {
+  const int64_t* ids;
+  const int64_t* track;
+  const double* centroid;
+  const double* poses;
+  const double* start;
+  const double* reach;
+  int batch, count, frames, x, y;
+  double lower_x, lower_y, voxel;
+  int window, near, iters;
+  double lr, softness_first, softness_last, accel_prior;
+};
+int64_t box_fit_scratch(int64_t batch, int64_t count, int64_t frames, int64_t window);
+cudaError_t box_fit(const BoxFitArgs& args, float* samples, int* sampled, double* params,
+                    double* iou, cudaStream_t stream);
+
 }  // namespace cuda
 }  // namespace t3fast

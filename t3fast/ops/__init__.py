@@ -19,8 +19,8 @@ from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
-__all__ = ["axis_pool", "bev_components", "build_info", "delta_fuse", "draw_boxes", "label_conv3d", "reference",
-           "triplane_decode"]
+__all__ = ["axis_pool", "bev_components", "box_fit", "build_info", "delta_fuse", "draw_boxes", "label_conv3d",
+           "reference", "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -224,3 +224,44 @@ def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lo
         return reference.draw_boxes(volume, boxes, levels, labels, lower, voxel_size, reach)
     return ops.draw_boxes.default(volume, boxes, levels, labels, [float(v) for v in lower], float(voxel_size),
                                   int(reach))
+
+
+def box_fit(ids: Tensor, track: Tensor, centroid: Tensor, poses: Tensor, start: Tensor, reach: Tensor,
+            lower: Sequence[float], voxel_size: float, window: int, near: int, iters: int, lr: float,
+            softness: Sequence[float], accel_prior: float) -> tuple[Tensor, Tensor]:
+    """Agents' boxes fitted to their grid columns in every frame of a window, on the device,
+    without a host synchronisation.
+
+    Agent ``a`` of window ``b`` samples, in every frame ``t`` where it was found
+    (``track[b, a, t] >= 0``), the columns within ``reach[b, a]`` cells (Euclidean, capped at
+    ``window``) of its rounded centroid and within ``near`` columns of one it owns (component
+    map value ``track + 1``); each sample's centre is taken into the present frame with the
+    frame's pose (column centres at ``lower + voxel_size * (index + 0.5)``). Its box (centre,
+    velocity, acceleration, yaw, length, width) is fitted by ``iters`` Adam steps (learning
+    rate ``lr``) on the summed logistic loss of a soft inside/outside (the signed distance to
+    the footprint's edge over a width narrowing from ``softness[0]`` to ``softness[1]``
+    metres) against ownership, over the window's samples, plus ``accel_prior`` times the
+    acceleration's square, over the window's fitted agents
+    (:func:`t3fast.ops.reference.fit_loss`). Computed in float32 around each agent's starting
+    centre.
+
+    Args:
+        ids: int64 ``[B, T, X, Y]``: each frame's component map (0 off the agents, else 1 + component).
+        track: int64 ``[B, n, T]``: each agent's component in every frame, -1 where not found.
+        centroid: float64 ``[B, n, T, 2]``: that component's column centroid (cells; read where found).
+        poses: float64 ``[B, T, 3]``: each frame's planar pose (x, y, yaw) in the present frame.
+        start: float64 ``[B, n, 7]``: the boxes to start from: centre x, y (metres, present
+            frame), velocity per step, yaw, log length, log width.
+        reach: float64 ``[B, n]``: cells around the centroid sampled; <= 0 (or NaN): not fitted.
+
+    Returns:
+        boxes float64 ``[B, n, 7]`` as ``start`` (the velocity the present one of the constant
+        acceleration fitted with them; an agent not fitted keeps its start) and each one's
+        footprint IoU with its columns over the frames, float64 ``[B, n]`` (0 if not fitted).
+    """
+    args = (ids, track, centroid, poses, start, reach, [float(v) for v in lower], float(voxel_size), int(window),
+            int(near), int(iters), float(lr), [float(v) for v in softness], float(accel_prior))
+    if ops is None:
+        _checks.check_box_fit(*args)
+        return reference.box_fit(*args)
+    return ops.box_fit.default(*args)

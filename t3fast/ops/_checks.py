@@ -243,3 +243,33 @@ def check_draw_boxes(volume: torch.Tensor, boxes: torch.Tensor, levels: torch.Te
     _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
     _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
     _require(reach >= 0, op, f"reach must be at least 0, got {reach}")
+
+
+def check_box_fit(ids, track, centroid, poses, start, reach, lower, voxel_size, window, near, iters, lr, softness,
+                  accel_prior) -> None:
+    """box_fit's arguments, as csrc/checks.h checks them."""
+    op = "box_fit"
+    _check_dim(ids, op, "ids", 4, "[B, T, X, Y]")
+    _require(ids.dtype == torch.int64, op, f"ids must be int64, got {_dtype_name(ids.dtype)}")
+    _check_dim(track, op, "track", 3, "[B, n, T]")
+    _require(track.dtype == torch.int64, op, f"track must be int64, got {_dtype_name(track.dtype)}")
+    _check_size(track, op, "track", 0, ids.shape[0], "batch, as ids")
+    _check_size(track, op, "track", 2, ids.shape[1], "frames, as ids.shape[1]")
+    b, n, frames = ids.shape[0], track.shape[1], ids.shape[1]
+    for name, t, layout, shape in (("centroid", centroid, "[B, n, T, 2]", [b, n, frames, 2]),
+                                   ("poses", poses, "[B, T, 3]", [b, frames, 3]),
+                                   ("start", start, "[B, n, 7]", [b, n, 7]), ("reach", reach, "[B, n]", [b, n])):
+        _check_dim(t, op, name, len(shape), layout)
+        _require(t.dtype == torch.float64, op, f"{name} must be float64, got {_dtype_name(t.dtype)}")
+        _require(list(t.shape) == shape, op, f"{name} must be {layout} = {shape} (ids {list(ids.shape)}, track "
+                 f"{list(track.shape)}), got {list(t.shape)}")
+        _check_device(t, ids, op, name, "ids")
+    _check_device(track, ids, op, "track", "ids")
+    _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
+    _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
+    _require(0 <= window <= 1024, op, f"window must be in [0, 1024] cells, got {window}")
+    _require(0 <= near <= 16, op, f"near must be in [0, 16] cells, got {near}")
+    _require(iters >= 0, op, f"iters must be at least 0, got {iters}")
+    _require(lr > 0, op, f"lr must be positive, got {lr}")
+    _require(len(softness) == 2 and softness[0] > 0 and softness[1] > 0, op,
+             f"softness must hold two positive widths (first and last iteration), got {list(softness)}")

@@ -283,6 +283,18 @@ def _draw_boxes_fake(volume, boxes, levels, labels, lower, voxel_size, reach):
     return torch.empty_like(volume, memory_format=torch.contiguous_format)
 
 
+# ---------------------------------------------------------------- box_fit
+@torch.library.register_fake("t3fast::box_fit")
+def _box_fit_fake(ids, track, centroid, poses, start, reach, lower, voxel_size, window, near, iters, lr, softness,
+                  accel_prior):
+    torch._check(start.dim() == 3, lambda: f"start must have 3 dims, got {start.dim()}")
+    for name, t in (("track", track), ("centroid", centroid), ("poses", poses), ("start", start), ("reach", reach)):
+        torch._check(t.device == ids.device,
+                     lambda name=name, t=t: f"t3fast.box_fit: {name} must be on the same device as ids "
+                     f"({ids.device}), got {t.device}")
+    return torch.empty_like(start, memory_format=torch.contiguous_format), start.new_empty(start.shape[:2])
+
+
 # ---------------------------------------------------------------- autocast
 _autocast_lib = torch.library.Library("t3fast", "IMPL")
 

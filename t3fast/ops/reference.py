@@ -7,7 +7,9 @@ exactly what the fused kernels avoid.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -215,3 +217,162 @@ def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lo
     winner = torch.zeros(b * nx * ny * nz, dtype=torch.long, device=device).scatter_reduce_(
         0, voxel.flatten(), number.flatten(), "amax").view(volume.shape)
     return torch.where(winner > 0, labels[(winner - 1).clamp(min=0)], volume)
+
+
+# ---------------------------------------------------------------- box_fit
+@dataclass
+class FitSamples:
+    """One window's box-fit samples, flat over its agents and frames, float32 around each
+    agent's starting centre: ``points`` ``[N, 2]`` (metres), ``time`` ``[N]`` (steps before the
+    present, <= 0), ``agent`` ``[N]`` int64, ``owned`` ``[N]`` (1: one of the agent's columns),
+    ``count`` the loss's normaliser (the number of samples, at least 1)."""
+
+    points: Tensor
+    time: Tensor
+    agent: Tensor
+    owned: Tensor
+    count: int
+
+
+def _fit_margins(params: Tensor, samples: FitSamples) -> tuple[Tensor, ...]:
+    """(the footprint margin ``[N]`` of every sample under the boxes ``params`` ``[n, 9]``, and
+    the terms its gradient reads)."""
+    box = params.index_select(0, samples.agent)
+    time = samples.time[:, None]
+    centre = box[:, :2] + box[:, 2:4] * time + 0.5 * box[:, 7:9] * time * time
+    d = samples.points - centre
+    c, s = torch.cos(box[:, 4]), torch.sin(box[:, 4])
+    along = c * d[:, 0] + s * d[:, 1]
+    across = -s * d[:, 0] + c * d[:, 1]
+    half_length, half_width = box[:, 5].exp() / 2, box[:, 6].exp() / 2
+    by_length, by_width = half_length - along.abs(), half_width - across.abs()
+    return torch.minimum(by_length, by_width), by_length, by_width, along, across, c, s, half_length, half_width
+
+
+def fit_loss(params: Tensor, samples: FitSamples, softness: float, accel_prior: float) -> Tensor:
+    """The objective :func:`box_fit` descends: the summed logistic loss of the soft
+    inside/outside (signed footprint distance over ``softness`` metres) against each sample's
+    ownership, over the samples' count, plus the zero-acceleration prior ``accel_prior`` per
+    agent. ``params`` ``[n, 9]``: centre, velocity per step, yaw, log length, log width,
+    acceleration per step^2 (differentiable: the fit uses :func:`fit_gradient`)."""
+    margin = _fit_margins(params, samples)[0]
+    loss = F.binary_cross_entropy_with_logits(margin / softness, samples.owned, reduction="sum")
+    return loss / samples.count + accel_prior * params[:, 7:9].pow(2).sum() / params.shape[0]
+
+
+def fit_gradient(params: Tensor, samples: FitSamples, softness: float, accel_prior: float) -> Tensor:
+    """The gradient ``[n, 9]`` of :func:`fit_loss` with respect to ``params``, in closed form.
+    Where the footprint's two distances tie, each takes half, as ``torch.minimum``'s gradient
+    does."""
+    margin, by_length, by_width, along, across, c, s, half_length, half_width = _fit_margins(params, samples)
+    g = (torch.sigmoid(margin / softness) - samples.owned) / (softness * samples.count)  # d loss / d margin
+    share = torch.where(by_length < by_width, 1.0, torch.where(by_length == by_width, 0.5, 0.0))
+    g_length, g_width = g * share, g * (1 - share)
+    g_along, g_across = -g_length * along.sign(), -g_width * across.sign()
+    g_x = -(g_along * c - g_across * s)  # d loss / d centre (the point minus the centre is d)
+    g_y = -(g_along * s + g_across * c)
+    time = samples.time
+    half_t2 = 0.5 * time * time
+    rows = torch.stack([g_x, g_y, g_x * time, g_y * time, g_along * across - g_across * along,
+                        g_length * half_length, g_width * half_width, g_x * half_t2, g_y * half_t2], 1)
+    grad = params.new_zeros(params.shape).index_add_(0, samples.agent, rows)
+    grad[:, 7:9] += 2 * accel_prior / params.shape[0] * params[:, 7:9]
+    return grad
+
+
+def box_fit_samples(ids: Tensor, track: Tensor, centroid: Tensor, poses: Tensor, reach: Tensor,
+                    lower: Sequence[float], voxel_size: float, near: int) -> dict[str, Tensor]:
+    """The columns that decide each agent's box in one window (:func:`box_fit`'s arguments of
+    one batch element, the agents to fit only): in every frame ``t`` where the agent was found,
+    the grid columns within ``reach`` (Euclidean, in cells) of its rounded centroid and within
+    ``near`` columns (along each axis) of one it owns. Flat over frames, then agents, then the
+    window's rows and columns: ``position`` ``[N, 2]`` (float64 metres in the present frame),
+    ``owned`` ``[N]``, ``agent`` ``[N]`` and ``time`` ``[N]`` (``t - (T - 1)``)."""
+    frames, nx, ny = ids.shape
+    n = track.shape[0]
+    half = int(reach.max().ceil()) + near if n else near
+    side = torch.arange(-half, half + 1, device=ids.device)
+    offsets = torch.stack(torch.meshgrid(side, side, indexing="ij"), -1).reshape(-1, 2)
+    within = offsets.double().norm(dim=-1)[None] <= reach[:, None]  # [n, P]
+    width = 2 * half + 1
+    out: dict[str, list[Tensor]] = {"position": [], "owned": [], "agent": [], "time": []}
+    for t in range(frames):
+        index = track[:, t]
+        seen = index >= 0
+        cells = torch.where(seen[:, None], centroid[:, t], 0.0).round().long()[:, None] + offsets
+        inside = (cells[..., 0] >= 0) & (cells[..., 0] < nx) & (cells[..., 1] >= 0) & (cells[..., 1] < ny)
+        cells = torch.stack([cells[..., 0].clamp(0, nx - 1), cells[..., 1].clamp(0, ny - 1)], -1)
+        owned = (ids[t][cells[..., 0], cells[..., 1]] == index[:, None] + 1) & inside
+        close = F.max_pool2d(owned.view(n, 1, width, width).float(), 2 * near + 1, 1, near).view(n, -1) > 0
+        keep = (inside & within & close & seen[:, None]).nonzero()
+        cell = cells[keep[:, 0], keep[:, 1]].double()
+        local = torch.tensor(lower, dtype=torch.float64, device=ids.device) + (cell + 0.5) * voxel_size
+        pose = poses[t]
+        c, s = torch.cos(pose[2]), torch.sin(pose[2])
+        out["position"].append(torch.stack([pose[0] + c * local[:, 0] - s * local[:, 1],
+                                            pose[1] + s * local[:, 0] + c * local[:, 1]], -1))
+        out["owned"].append(owned[keep[:, 0], keep[:, 1]].double())
+        out["agent"].append(keep[:, 0])
+        out["time"].append(poses.new_full((keep.shape[0],), float(t - (frames - 1))))
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def fit_adam(start: Tensor, found: dict[str, Tensor], iters: int, lr: float, softness: Sequence[float],
+             accel_prior: float) -> tuple[Tensor, Tensor]:
+    """Boxes ``[n, 7]`` fitted from ``start`` to the samples ``found`` (:func:`box_fit_samples`)
+    and each one's footprint IoU with its columns over the frames ``[n]``: ``iters`` Adam steps
+    (learning rate ``lr``, the default betas) on :func:`fit_gradient`, the softness narrowing
+    geometrically from ``softness[0]`` to ``softness[1]``, in float32 around each agent's
+    starting centre."""
+    agent = found["agent"]
+    samples = FitSamples((found["position"] - start[agent, :2]).float(), found["time"].float(), agent,
+                         found["owned"].float(), max(agent.numel(), 1))
+    offset = start.clone()
+    offset[:, 2:] = 0
+    n = start.shape[0]
+    params = torch.cat([(start - offset).float(), start.new_zeros(n, 2, dtype=torch.float32)], 1)
+    mean, square = torch.zeros_like(params), torch.zeros_like(params)
+    beta1, beta2 = 0.9, 0.999
+    for it in range(iters):
+        soft = softness[0] * (softness[1] / softness[0]) ** (it / max(iters - 1, 1))
+        grad = fit_gradient(params, samples, soft, accel_prior)
+        mean.lerp_(grad, 1 - beta1)
+        square.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+        denom = (square.sqrt() / math.sqrt(1 - beta2 ** (it + 1))).add_(1e-8)
+        params.addcdiv_(mean, denom, value=-lr / (1 - beta1 ** (it + 1)))
+    inside = (_fit_margins(params, samples)[0] > 0).float()
+    owned = samples.owned
+    both = owned.new_zeros(n).index_add_(0, agent, inside * owned)
+    either = owned.new_zeros(n).index_add_(0, agent, (inside + owned).clamp(max=1))
+    return params[:, :7].double() + offset, (both / either.clamp(min=1)).double()
+
+
+def box_fit(ids: Tensor, track: Tensor, centroid: Tensor, poses: Tensor, start: Tensor, reach: Tensor,
+            lower: Sequence[float], voxel_size: float, window: int, near: int, iters: int, lr: float,
+            softness: Sequence[float], accel_prior: float) -> tuple[Tensor, Tensor]:
+    """Agents' boxes fitted to their columns in every frame of a window: per batch element, the
+    agents with ``reach > 0`` are fitted together (:func:`box_fit_samples`, :func:`fit_adam`;
+    the loss normalised by their samples' count and the prior by their number), the others keep
+    their start and an IoU of 0. ``reach`` is capped at ``window``.
+
+    Args:
+        ids: int64 ``[B, T, X, Y]``: each frame's component map (0 off the agents, else 1 + component).
+        track: int64 ``[B, n, T]``: each agent's component in every frame, -1 where not found.
+        centroid: float64 ``[B, n, T, 2]``: that component's column centroid (cells; read where found).
+        poses: float64 ``[B, T, 3]``: each frame's planar pose in the present frame.
+        start: float64 ``[B, n, 7]``: centre (metres), velocity per step, yaw, log length, log width.
+        reach: float64 ``[B, n]``: cells around the centroid the fit samples; <= 0: not fitted.
+
+    Returns:
+        the fitted boxes float64 ``[B, n, 7]`` (the velocity the present one of a constant
+        acceleration fitted with them) and the footprint IoU float64 ``[B, n]``.
+    """
+    params, iou = start.clone(), start.new_zeros(start.shape[:2])
+    for b in range(start.shape[0]):
+        fitted = (reach[b] > 0).nonzero().squeeze(1)
+        if fitted.numel() == 0:
+            continue
+        found = box_fit_samples(ids[b], track[b, fitted], centroid[b, fitted], poses[b],
+                                reach[b, fitted].clamp(max=window), lower, voxel_size, near)
+        params[b, fitted], iou[b, fitted] = fit_adam(start[b, fitted], found, iters, lr, softness, accel_prior)
+    return params, iou

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from t3fast.agents import boxes as boxes_module
-from t3fast.agents.boxes import FitSamples, draw_agent_boxes, fit_agent_boxes, fit_gradient, fit_loss
+from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK, box_footprint
 from t3fast.data.synthetic.render import draw_boxes
 from t3fast.data.synthetic.world import ON_GROUND, z_level
@@ -159,54 +158,3 @@ def test_bad_shapes_are_refused():
         fit_agent_boxes(torch.zeros(5, 200, 200, dtype=torch.uint8), torch.zeros(5, 3))
     with pytest.raises(ValueError, match=r"frames must be \[T, X, Y, Z\] and poses \[T, 3\]"):
         fit_agent_boxes(torch.zeros(5, 200, 200, 16, dtype=torch.uint8), torch.zeros(4, 3))
-
-
-def _fit_problem(n: int = 3, per_agent: int = 40, seed: int = 0) -> tuple[torch.Tensor, FitSamples]:
-    """Random boxes (float64) and samples around them, some inside, some on an edge."""
-    g = torch.Generator().manual_seed(seed)
-    params = torch.cat([torch.randn(n, 4, generator=g, dtype=torch.float64) * 0.3,
-                        torch.rand(n, 1, generator=g, dtype=torch.float64) * 3,
-                        torch.rand(n, 2, generator=g, dtype=torch.float64).add(0.3).log(),
-                        torch.randn(n, 2, generator=g, dtype=torch.float64) * 0.1], 1)
-    agent = torch.arange(n).repeat_interleave(per_agent)
-    points = torch.randn(n * per_agent, 2, generator=g, dtype=torch.float64) * 1.5
-    time = -torch.randint(0, 5, (n * per_agent,), generator=g).double()
-    owned = (torch.rand(n * per_agent, generator=g) < 0.4).double()
-    return params, FitSamples(points, time, agent, owned, n * per_agent)
-
-
-@pytest.mark.parametrize("softness", [0.1, 0.015])
-def test_the_fits_closed_form_gradient_is_the_objectives_gradient(softness):
-    params, samples = _fit_problem()
-    params.requires_grad_(True)
-    expected, = torch.autograd.grad(fit_loss(params, samples, softness), params)
-    torch.testing.assert_close(fit_gradient(params.detach(), samples, softness), expected, rtol=1e-10, atol=1e-12)
-
-
-def test_the_fits_gradient_splits_a_tie_between_length_and_width_as_torch_minimum_does():
-    params = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, math.log(2.0), math.log(2.0), 0.0, 0.0]], dtype=torch.float64)
-    points = torch.tensor([[0.5, 0.5], [0.2, -0.9]], dtype=torch.float64)  # on the diagonal: the margins tie
-    samples = FitSamples(points, torch.zeros(2, dtype=torch.float64), torch.zeros(2, dtype=torch.long),
-                         torch.tensor([1.0, 0.0], dtype=torch.float64), 2)
-    params.requires_grad_(True)
-    expected, = torch.autograd.grad(fit_loss(params, samples, 0.1), params)
-    torch.testing.assert_close(fit_gradient(params.detach(), samples, 0.1), expected, rtol=1e-12, atol=1e-14)
-
-
-def test_the_fit_descends_as_adam_on_its_objective_does():
-    """The fit's own Adam steps (no autograd) against torch.optim.Adam on :func:`fit_loss`."""
-    start, samples = _fit_problem(n=2, seed=3)
-    fitted = start[:, :7].clone()
-    found = {"position": samples.points, "time": samples.time, "agent": samples.agent, "owned": samples.owned}
-    got, _ = boxes_module._optimise(fitted.clone(), found, 30)
-    params = torch.cat([torch.zeros(2, 2), fitted[:, 2:].float(), torch.zeros(2, 2)], 1).requires_grad_(True)
-    local = FitSamples((samples.points - fitted[samples.agent, :2]).float(), samples.time.float(), samples.agent,
-                       samples.owned.float(), samples.count)
-    optimiser = torch.optim.Adam([params], lr=boxes_module.FIT_LR)
-    for it in range(30):
-        softness = boxes_module.SOFTNESS[0] * (boxes_module.SOFTNESS[1] / boxes_module.SOFTNESS[0]) ** (it / 29)
-        optimiser.zero_grad()
-        fit_loss(params, local, softness).backward()
-        optimiser.step()
-    expected = params[:, :7].detach().double() + torch.cat([fitted[:, :2], torch.zeros(2, 5, dtype=torch.float64)], 1)
-    torch.testing.assert_close(got, expected, rtol=0, atol=1e-4)

@@ -37,6 +37,7 @@ from t3fast.agents.boxes import fit_agent_boxes
 from t3fast.data.sample import NUM_FUTURE, PRESENT, DrivingSample, collate_samples
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models.ego_motion import planar_poses, wrap_angle
+from t3fast.ops import reference
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
 
 MATCH_METRES = 1.0
@@ -50,8 +51,10 @@ def cache_key(windows: SyntheticDriving) -> str:
     """Changes with the windows (the world's data, the split, the frames per scene, the stride)
     and with the code of the fit and the features."""
     code = hashlib.sha256()
-    for module in (tracker, boxes, box_kinematics):
-        code.update(inspect.getsource(module).encode())
+    # the fit's definition: the fused op's kernels follow its reference
+    fit = (reference.box_fit, reference.box_fit_samples, reference.fit_adam, reference.fit_gradient)
+    for source in (tracker, boxes, box_kinematics, *fit):
+        code.update(inspect.getsource(source).encode())
     scenes = windows.scenes
     return (f"{world_digest(scenes)}-{scenes.split}-{scenes.frames_per_scene}f-stride{windows.stride}"
             f"-{code.hexdigest()[:12]}-v{BOX_CACHE_FORMAT}")

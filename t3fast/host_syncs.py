@@ -26,12 +26,14 @@ SYNCING = frozenset({"_local_scalar_dense", "equal", "nonzero", "unique", "_uniq
 class SyncCounter(TorchDispatchMode):
     """Counts the syncing ops (:data:`SYNCING`, and indexing with a boolean mask) run under it:
     ``by_op`` (op name) and ``by_caller`` (``"module/path.py:function"`` of the innermost t3fast
-    frame that ran it)."""
+    frame that ran it); and ``dispatched``, every op run (views included): an upper bound of the
+    kernels a GPU run launches, each costing microseconds of the host's time."""
 
     def __init__(self) -> None:
         super().__init__()
         self.by_op: Counter[str] = Counter()
         self.by_caller: Counter[str] = Counter()
+        self.dispatched = 0
 
     @property
     def total(self) -> int:
@@ -39,6 +41,7 @@ class SyncCounter(TorchDispatchMode):
         return sum(self.by_op.values())
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.dispatched += 1
         name = func._schema.name.split("::")[-1]
         indices = args[1] if name in ("index", "index_put", "index_put_") and len(args) > 1 else []
         boolean_index = any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in indices or [])

@@ -14,6 +14,9 @@ from t3fast.pretrained import load_world_model
 
 #: syncing ops of one forecast of the window below at this version; lower it as parts go sync-free
 MAX_FORECAST_SYNCS = 110
+#: ops dispatched in that forecast (6,564 before the matching costs, the splatting and the box
+#: drawing were batched)
+MAX_FORECAST_OPS = 4_200
 #: (file, function) prefixes that may still read the device: the agents' variable-length records
 #: and the checks of the user's inputs
 ALLOWED = ("agents/tracker.py:", "agents/boxes.py:fit_agent_boxes",
@@ -34,6 +37,7 @@ def test_counts_what_the_host_must_read():
         torch.where(mask, x, -x)
     assert dict(counter.by_op) == {"_local_scalar_dense": 1, "nonzero": 1, "index (bool mask)": 2, "equal": 1}
     assert counter.total == 5
+    assert counter.dispatched >= 12  # every op, the views and the ones that wait included
     assert set(counter.by_caller) == set()  # none of them ran in t3fast
 
 
@@ -53,3 +57,8 @@ def test_the_shipped_forecast_waits_only_in_its_agents_records_and_input_checks(
 
 def test_the_shipped_forecast_waits_no_more_often_than_before(forecast_syncs):
     assert forecast_syncs.total <= MAX_FORECAST_SYNCS, forecast_syncs.by_caller.most_common(10)
+
+
+def test_the_shipped_forecast_runs_no_more_ops_than_before(forecast_syncs):
+    """Each op is a kernel launch on a GPU (microseconds of the host's time whatever its size)."""
+    assert forecast_syncs.dispatched <= MAX_FORECAST_OPS

@@ -26,7 +26,7 @@ def main() -> None:
     counter = SyncCounter()
     with counter:
         model.forecast(occ, poses)
-    print(f"{args.model}: {counter.total} syncing ops in one forecast")
+    print(f"{args.model}: {counter.total} syncing ops in one forecast, {counter.dispatched} ops dispatched")
     for name, count in counter.by_op.most_common():
         print(f"  {count:6d}  {name}")
     print("by caller:")

@@ -155,22 +155,25 @@ def _centroids(agents: list[dict[str, Tensor]], match: Tensor) -> Tensor:
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,
                      top: Tensor, label: Tensor, pose: Tensor) -> None:
-    """Draw boxes into a label volume ``[X, Y, Z]`` (uint8) in place: box ``i`` (centre ``[m, 2]``,
-    yaw, length, width ``[m]`` in the present frame, metres) fills the levels ``bottom[i]`` to
-    ``top[i]`` (exclusive) of every column whose centre lies inside its footprint, and the
-    column under its centre, with ``label[i]``; where boxes overlap, the later one's. ``pose``
-    ``[3]``: the volume's ego pose in the present frame (the boxes are taken into it). The
+    """Draw boxes into label volumes ``[..., X, Y, Z]`` (uint8) in place: box ``i`` (centre
+    ``[..., m, 2]``, yaw ``[..., m]`` in the present frame, metres; length, width ``[m]``) fills
+    the levels ``bottom[i]`` to ``top[i]`` (exclusive) of every column whose centre lies inside
+    its footprint, and the column under its centre, with ``label[i]``; where boxes overlap, the
+    later one's. ``pose`` ``[..., 3]``: each volume's ego pose in the present frame (the boxes are
+    taken into it); the leading dims (a forecast's steps, say) are drawn in one call. The
     footprint test is :func:`~t3fast.data.classes.box_footprint`'s, for all boxes at once on
     the volume's device (:func:`t3fast.ops.draw_boxes`), within ``DRAW_REACH`` columns of each
     box's centre column."""
     device = volume.device
-    pose = pose.to(device, torch.float64)
-    c, s = torch.cos(pose[2]), torch.sin(pose[2])
-    d = centre.to(device, torch.float64) - pose[:2]
-    heading = yaw.to(device, torch.float64) - pose[2]
-    boxes = torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], torch.cos(heading), torch.sin(heading),
-                         length.to(device, torch.float64) / 2, width.to(device, torch.float64) / 2], -1)
+    frames = volume.reshape(-1, *volume.shape[-3:])
+    pose = pose.to(device, torch.float64).reshape(frames.shape[0], 3)
+    c, s = torch.cos(pose[:, 2:]), torch.sin(pose[:, 2:])  # [B, 1]
+    d = centre.to(device, torch.float64).reshape(frames.shape[0], -1, 2) - pose[:, None, :2]
+    heading = yaw.to(device, torch.float64).reshape(frames.shape[0], -1) - pose[:, 2:]
+    half = torch.stack([length, width], -1).to(device, torch.float64).expand_as(d) / 2
+    boxes = torch.cat([torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
+                                    torch.cos(heading), torch.sin(heading)], -1), half], -1)
     levels = torch.stack([bottom, top], -1).to(device, torch.long)
-    drawn = ops.draw_boxes(volume[None], boxes[None], levels, label.to(device, torch.uint8), GRID_LOWER[:2],
-                           VOXEL_SIZE, DRAW_REACH)
-    volume.copy_(drawn[0])
+    drawn = ops.draw_boxes(frames, boxes, levels, label.to(device, torch.uint8), GRID_LOWER[:2], VOXEL_SIZE,
+                           DRAW_REACH)
+    volume.copy_(drawn.view(volume.shape))

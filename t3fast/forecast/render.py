@@ -180,11 +180,10 @@ class DrawAgents:
 
     @staticmethod
     def _draw_boxes(frames: Tensor, move: AgentMoves, poses: Tensor) -> None:
-        """One sample's drawn boxes into its frames ``[S, X, Y, Z]`` at their poses ``[S, 3]``. A box
-        not drawn spans no level (its top is its bottom): the boxes keep their order, and no mask
-        selects them (which would read it on the host)."""
+        """One sample's drawn boxes into its frames ``[S, X, Y, Z]`` at their poses ``[S, 3]``, all
+        steps in one call. A box not drawn spans no level (its top is its bottom): the boxes keep
+        their order, and no mask selects them (which would read it on the host)."""
         box = move.boxes
         top = torch.where(move.as_box, box.top, box.bottom)
-        for k in range(frames.shape[0]):
-            draw_agent_boxes(frames[k], move.box_poses[k, :, :2], move.box_poses[k, :, 2], box.length, box.width,
-                             box.bottom, top, box.label, poses[k])
+        draw_agent_boxes(frames, move.box_poses[..., :2], move.box_poses[..., 2], box.length, box.width, box.bottom,
+                         top, box.label, poses)

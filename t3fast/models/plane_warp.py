@@ -45,15 +45,17 @@ def splat_plane(values: Tensor, displacement: Tensor) -> Tensor:
     base = pos.detach().floor()
     frac = pos - base  # carries the gradient to the displacement
     base = base.long()
-    flat = values.reshape(b, v, h * w)
-    out = values.new_zeros(b, v, h * w)
-    for di in (0, 1):
-        for dj in (0, 1):
-            i, j = base[..., 0] + di, base[..., 1] + dj
-            weight = (frac[..., 0] if di else 1 - frac[..., 0]) * (frac[..., 1] if dj else 1 - frac[..., 1])
-            inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-            index = (i.clamp(0, h - 1) * w + j.clamp(0, w - 1)).view(b, 1, h * w).expand(-1, v, -1)
-            out = out.scatter_add(2, index, flat * (weight * inside).view(b, 1, h * w).to(values.dtype))
+    # the four corners (di, dj) = (0, 0), (0, 1), (1, 0), (1, 1) at once, corner after corner
+    # along the last dim, so that the sums run in the order of one scatter per corner
+    di, dj = (torch.tensor(d, device=values.device) for d in ((0, 0, 1, 1), (0, 1, 0, 1)))
+    i, j = base[..., :1] + di, base[..., 1:] + dj  # [B, H, W, 4]
+    f_i, f_j = frac[..., :1], frac[..., 1:]
+    weight = torch.where(di > 0, f_i, 1 - f_i) * torch.where(dj > 0, f_j, 1 - f_j)
+    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    index = (i.clamp(0, h - 1) * w + j.clamp(0, w - 1)).permute(0, 3, 1, 2).reshape(b, 1, 4 * h * w)
+    weight = (weight * inside).permute(0, 3, 1, 2).reshape(b, 1, 4, h * w).to(values.dtype)
+    spread = (values.reshape(b, v, 1, h * w) * weight).reshape(b, v, 4 * h * w)
+    out = values.new_zeros(b, v, h * w).scatter_add(2, index.expand(-1, v, -1), spread)
     return out.view(b, v, h, w)
 
 
@@ -62,12 +64,11 @@ def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
     it: ``out[:, n]`` is minus the channel-mean absolute difference to ``previous`` shifted by
     the n-th ``(d_i, d_j)`` of ``[-radius, radius]^2`` (row-major), ``[B, (2r+1)^2, H, W]``.
     The best match sits where the content came from: a local, data-independent view of motion."""
-    h, w = present.shape[-2:]
+    b, _, h, w = present.shape
     padded = F.pad(previous, (radius,) * 4, mode="replicate")
     size = 2 * radius + 1
-    costs = [
-        -(present - padded[..., di : di + h, dj : dj + w]).abs().mean(1)
-        for di in range(size)
-        for dj in range(size)
-    ]
-    return torch.stack(costs, dim=1)
+    rows = []
+    for di in range(size):  # one row of shifts at a time: [B, C, H, size, W] is the largest tensor
+        shifted = padded[..., di : di + h, :].unfold(-1, w, 1)  # [B, C, H, size (d_j), W]
+        rows.append(-(present.unsqueeze(3) - shifted).abs().mean(1))  # [B, H, size, W]
+    return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w)

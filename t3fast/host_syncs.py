@@ -14,9 +14,34 @@ from __future__ import annotations
 
 import traceback
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+
+_sync_free: list[bool] = []
+
+
+@contextmanager
+def sync_free() -> Iterator[None]:
+    """Run the forecast as a GPU run does on any device, the CPU included: fixed-size records
+    where a CPU run compacts data-dependent ones on the host (:func:`reads_host`). For tests,
+    and for compiling or capturing the forecast whole."""
+    _sync_free.append(True)
+    try:
+        yield
+    finally:
+        _sync_free.pop()
+
+
+def reads_host(device: torch.device | str) -> bool:
+    """Whether code on ``device`` compacts data-dependent records on the host (the agents found
+    in a frame, the voxels beyond the observed grid): on the CPU, where a read costs nothing and
+    compacting saves work; not on an accelerator, where every read waits for the device, nor
+    under :func:`sync_free`. Either way the results are the same."""
+    return not _sync_free and torch.device(device).type == "cpu"
+
 
 #: aten ops whose output the host reads or whose output's shape depends on the values
 SYNCING = frozenset({"_local_scalar_dense", "equal", "nonzero", "unique", "_unique2", "unique_dim",

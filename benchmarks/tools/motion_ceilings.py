@@ -133,10 +133,8 @@ def boxed_agents(batch, mode: str) -> MethodOutput:
             now, fit = fit_agent_boxes(batch.past_occ[n], poses[n, : PRESENT + 1])  # now: the present's agents
             previous = warp_sequence(batch.past_occ[n : n + 1, -2:-1], poses[n : n + 1, PRESENT - 1 : PRESENT].float())
             before = frame_agents(previous[0, 0], AGENTS)
-            voxels = ~fit.drawn[now["component"]]
-            moved = dict(now, ijz=now["ijz"][voxels], label=now["label"][voxels], component=now["component"][voxels])
             shift = (k * velocities(now, before, before, blend=False)[None]).round().long()
-            scenes.append(move_agents(present, moved, shift, FREE))
+            scenes.append(move_agents(present, now, shift, FREE, keep=~fit.drawn))
             d = fit.drawn
             centres = fit.centre[d][None] + k * fit.velocity[d][None]
             yaws = fit.yaw[d].expand(NUM_FUTURE, -1)

@@ -34,8 +34,8 @@ import torch
 from torch import Tensor
 
 from t3fast import ops
-from t3fast.agents.tracker import cell_metres, follow_agents, frame_agents
-from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE
+from t3fast.agents.tracker import agent_levels, cell_metres, follow_agents, frame_agents
+from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, VOXEL_SIZE
 
 MIN_FIT_IOU = 0.5  # footprint IoU over the agent's frames under which it is not drawn as a box
 # Adam steps; 200 steps and samples 2 cells out scored the same on 16 validation windows (47.65
@@ -83,22 +83,26 @@ class AgentBoxes:
     future: Tensor | None = None
 
 
-def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tuple[dict[str, Tensor], AgentBoxes]:
+def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
+                    slots: int | None = None) -> tuple[dict[str, Tensor], AgentBoxes]:
     """Boxes of the present frame's agents fitted to their columns in every observed frame.
 
     Args:
         frames: labels ``[T, X, Y, Z]`` of the past frames and the present (last), each in its
             own ego frame.
         poses: their planar poses ``[T, 3]`` in the present frame (the last is zero).
+        slots: the agents' slots per frame (:func:`~t3fast.agents.tracker.frame_agents`; None:
+            as many as the frame holds, counted on the host).
     Returns:
-        the present's agents (:func:`~t3fast.agents.tracker.frame_agents`) and their :class:`AgentBoxes`.
+        the present's agents (:func:`~t3fast.agents.tracker.frame_agents`) and their
+        :class:`AgentBoxes` (one per slot; an empty slot is not drawn).
     """
     if frames.dim() != 4 or poses.shape != (frames.shape[0], 3):
         raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
                          f"{list(frames.shape)} and {list(poses.shape)}")
     poses = poses.to(frames.device, torch.float64)
     wanted = frames.new_tensor(AGENT_CLASSES)
-    agents = [frame_agents(f, wanted) for f in frames]
+    agents = [frame_agents(f, wanted, slots) for f in frames]
     now = agents[-1]
     n = now["cls"].shape[0]
     empty = poses.new_zeros(n)
@@ -107,40 +111,45 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS) -> tu
                                empty.long(), now["cls"], empty.bool(), empty.view(0, frames.shape[0], 2))
     match = follow_agents(agents, poses)
     found = _centroids(agents, match)
-    columns = (now["ids"] > 0).nonzero()
-    owner = now["ids"][columns[:, 0], columns[:, 1]] - 1
-    offset = columns.double() - now["centroid"][owner]
-    spread = empty.clone().scatter_reduce_(0, owner, offset.norm(dim=-1), "amax", include_self=True)
+    # each column's offset from its agent's centroid (columns off the agents gather in slot n)
+    owner = now["column_slot"]
+    offset = now["columns"].double() - torch.cat([now["centroid"], now["centroid"].new_zeros(1, 2)])[owner]
+    spread = _per_slot_max(offset.norm(dim=-1), owner, n)
     # start: the present centroid, the last step's velocity, the principal axis and extents
     centre = cell_metres(now["centroid"], poses[-1])
     velocity = torch.zeros_like(centre)
     if match.shape[1] > 1:
         velocity = torch.where(match[:, -2:-1] >= 0, centre - cell_metres(found[:, -2], poses[-2]), velocity)
     spread_m = offset * VOXEL_SIZE
-    cov = poses.new_zeros(n, 2, 2).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])
+    cov = poses.new_zeros(n + 1, 2, 2).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])[:n]
     axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64, device=cov.device))[1][..., 1]
-    along = (spread_m * axis[owner]).sum(-1).abs()
-    across = (spread_m[:, 1] * axis[owner, 0] - spread_m[:, 0] * axis[owner, 1]).abs()
-    length = empty.clone().scatter_reduce_(0, owner, along, "amax", include_self=True) * 2 + VOXEL_SIZE
-    width = empty.clone().scatter_reduce_(0, owner, across, "amax", include_self=True) * 2 + VOXEL_SIZE
+    column_axis = torch.cat([axis, axis.new_zeros(1, 2)])[owner]
+    along = (spread_m * column_axis).sum(-1).abs()
+    across = (spread_m[:, 1] * column_axis[:, 0] - spread_m[:, 0] * column_axis[:, 1]).abs()
+    length = _per_slot_max(along, owner, n) * 2 + VOXEL_SIZE
+    width = _per_slot_max(across, owner, n) * 2 + VOXEL_SIZE
     start = torch.cat([centre, velocity, torch.atan2(axis[:, 1], axis[:, 0])[:, None], length.log()[:, None],
                        width.log()[:, None]], 1)
-    reach = torch.where(spread + 3 <= MAX_REACH, spread + 3, 0.0)  # larger: merged agents (a queue, a truck
-    # and its trailer), not fitted
+    # farther: merged agents (a queue, a truck and its trailer), not fitted
+    reach = torch.where(now["valid"] & (spread + 3 <= MAX_REACH), spread + 3, 0.0)
     params, iou = ops.box_fit(torch.stack([a["ids"] for a in agents])[None], match[None], found[None], poses[None],
                               start[None], reach[None], GRID_LOWER[:2], VOXEL_SIZE, math.ceil(MAX_REACH), NEAR,
                               iters, FIT_LR, SOFTNESS, ACCEL_PRIOR)
     params, iou = params[0], iou[0]
     centre, velocity, yaw = params[:, :2], params[:, 2:4], params[:, 4]
     length, width = params[:, 5].exp(), params[:, 6].exp()
-    votes = match.new_zeros(n, NUM_CLASSES).index_put_(
-        (now["component"], now["label"]), torch.ones_like(now["label"]), accumulate=True)
-    z = now["ijz"][:, 2]
-    bottom = match.new_full((n,), frames.shape[-1]).scatter_reduce_(0, now["component"], z, "amin")
-    top = match.new_zeros(n).scatter_reduce_(0, now["component"], z + 1, "amax")
+    votes = now["votes"]
     drawn = (iou >= MIN_FIT_IOU) & (votes.max(1).values == votes.sum(1)) & ((match >= 0).sum(1) >= 2)
-    return now, AgentBoxes(centre, velocity, yaw, length, width, bottom, top, now["cls"], drawn,
+    return now, AgentBoxes(centre, velocity, yaw, length, width, *agent_levels(now), now["cls"], drawn & now["valid"],
                            cell_metres(found, poses))
+
+
+def _per_slot_max(values: Tensor, owner: Tensor, slots: int) -> Tensor:
+    """The largest of per-column ``values`` ``[N]`` over each slot's columns (``owner``, the
+    ``column_slot`` of :func:`~t3fast.agents.tracker.frame_agents`; at least 0): ``[slots]``."""
+    return values.new_zeros(slots + 1).scatter_reduce_(0, owner, values, "amax", include_self=True)[:slots]
+
+
 
 
 def _centroids(agents: list[dict[str, Tensor]], match: Tensor) -> Tensor:

@@ -13,6 +13,11 @@ with its majority class (:func:`frame_agents`). Two ways of matching them back i
 * following (:func:`follow_agents`): each present agent followed back through every past frame
   (in metres, each frame taken into the present one with its pose), searching around where its
   last velocity puts it: the tracks the fitted boxes (:mod:`t3fast.agents.boxes`) are fitted to.
+
+A frame's agents are records of ``n`` slots: on the CPU exactly the frame's agents (their count
+read on the host, the per-agent sums over their columns alone); on a GPU (or under
+:func:`~t3fast.host_syncs.sync_free`) :data:`AGENT_SLOTS` fixed slots, empty ones marked not
+``valid``, the sums over every column: no host read, the same results.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from torch import Tensor
 
 from t3fast import ops
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, in_classes
+from t3fast.host_syncs import reads_host
 from t3fast.models.ego_motion import compose
 
 # metres an agent's centroid may move between two frames (0.5 s) to be matched: 16 m/s. At 4 m,
@@ -32,115 +38,199 @@ from t3fast.models.ego_motion import compose
 TRACK_GATE = 8.0
 FOLLOW_GATE = 2.5  # metres between an agent's predicted and found centroid once its velocity is known
 VELOCITY_CHANNELS = 4  # tracker_velocities: over the last step, and the chained mean over the last two
+#: agents a frame's records hold where their count is not read on the host (a GPU run): the
+#: components after the first AGENT_SLOTS (in the numbering of :func:`frame_agents`) are not
+#: agents there (an Occ3D frame holds a few dozen)
+AGENT_SLOTS = 256
 
 
-def bev_components(mask: Tensor) -> tuple[Tensor, int]:
-    """8-connected components of a BEV mask ``[X, Y]`` (bool): labels int64 ``[X, Y]``, 0 off the
-    mask and 1..n on it, and n (:func:`t3fast.ops.bev_components`; reading n is the one host
-    synchronisation)."""
-    ids, n = ops.bev_components(mask[None])
-    return ids[0], int(n[0])
+def agent_slots(device: torch.device) -> int | None:
+    """How many agents :func:`frame_agents` keeps on ``device``: None (the count read on the host:
+    exactly the frame's agents) where the host is read (:func:`~t3fast.host_syncs.reads_host`),
+    else :data:`AGENT_SLOTS`, so that nothing waits for the device."""
+    return None if reads_host(device) else AGENT_SLOTS
 
 
-def frame_agents(frame: Tensor, classes: Tensor) -> dict[str, Tensor]:
-    """The agents of a frame ``[X, Y, Z]``: their voxels (``ijz`` ``[V, 3]``, ``label`` ``[V]``,
-    ``component`` ``[V]`` 0-based), the component map ``ids`` ``[X, Y]`` (0 off the agents, else
-    1 + component) and, per connected BEV component of the columns holding an agent voxel, its
-    majority class ``cls`` ``[n]`` and column centroid ``centroid`` ``[n, 2]`` (cells)."""
+def frame_agents(frame: Tensor, classes: Tensor, slots: int | None = None) -> dict[str, Tensor]:
+    """The agents of a frame ``[X, Y, Z]``: the connected BEV components of the columns holding an
+    agent voxel (``classes``), in ``n`` slots: the frame's count (read on the host) with
+    ``slots`` None, else ``slots`` (components beyond them are not agents; :func:`agent_slots`).
+
+    Returns:
+        ``ids`` ``[X, Y]`` int64 (0 off the agents, else 1 + slot), ``mask`` ``[X, Y, Z]`` bool
+        (the agents' voxels) and per slot: ``valid`` ``[n]`` (holds an agent), its majority class
+        ``cls`` ``[n]`` (-1 where not valid), its ``votes`` ``[n, NUM_CLASSES]`` (voxels of each
+        class) and its column centroid ``centroid`` ``[n, 2]`` (cells; 0 where not valid); and
+        the ``columns`` ``[N, 2]`` (row-major) per-agent sums run over with their
+        ``column_slot`` ``[N]``: the agents' columns, found on the host where it is read
+        (:func:`~t3fast.host_syncs.reads_host`), else every column, those off the agents in
+        slot n.
+    """
     is_agent = in_classes(frame, classes)
-    ids, n = bev_components(is_agent.any(-1))
-    ijz = is_agent.nonzero()
-    label = frame[is_agent].long()
-    component = ids[ijz[:, 0], ijz[:, 1]] - 1
-    votes = torch.zeros(n, NUM_CLASSES, dtype=torch.long, device=frame.device)
-    votes.index_put_((component, label), torch.ones_like(label), accumulate=True)
-    cols = (ids > 0).nonzero()
-    col_id = ids[cols[:, 0], cols[:, 1]] - 1
-    size = torch.bincount(col_id, minlength=n).double()
-    centroid = torch.stack([torch.bincount(col_id, cols[:, a].double(), minlength=n) for a in (0, 1)], -1)
-    return dict(ijz=ijz, label=label, component=component, ids=ids, cls=votes.argmax(1),
-                centroid=centroid / size.clamp(min=1)[:, None], mask=is_agent)
+    ids, count = ops.bev_components(is_agent.any(-1)[None])
+    ids, count = ids[0], count[0]
+    exact = slots is None
+    if exact:
+        slots = int(count)
+        valid = torch.ones(slots, dtype=torch.bool, device=frame.device)
+    else:
+        ids = torch.where(ids > slots, 0, ids)
+        is_agent &= (ids > 0)[..., None]
+        valid = torch.arange(slots, device=frame.device) < count
+    if reads_host(frame.device):  # the agents' columns, found on the host: a few percent of the frame
+        columns = (ids > 0).nonzero()
+        slot = ids[columns[:, 0], columns[:, 1]] - 1
+    else:  # every column, those off the agents in slot n
+        nx, ny = ids.shape
+        rows, cols = torch.arange(nx, device=frame.device), torch.arange(ny, device=frame.device)
+        columns = torch.stack(torch.meshgrid(rows, cols, indexing="ij"), -1).reshape(-1, 2)
+        slot = column_slots(ids, slots)
+    cells = columns.double()
+    size = cells.new_zeros(slots + 1).index_add_(0, slot, torch.ones_like(cells[:, 0]))[:slots]
+    centroid = cells.new_zeros(slots + 1, 2).index_add_(0, slot, cells)[:slots] / size.clamp(min=1)[:, None]
+    votes = _class_votes(frame, ids, is_agent, slots)
+    return dict(ids=ids, mask=is_agent, valid=valid, cls=torch.where(valid, votes.argmax(1), -1), votes=votes,
+                centroid=centroid, columns=columns, column_slot=slot)
+
+
+def agent_levels(agents: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    """Per slot of :func:`frame_agents`, the lowest level of its voxels and the one above its
+    highest: ``bottom``, ``top`` ``[n]`` int64 (Z and 0 for an empty slot)."""
+    mask, n = agents["mask"], agents["cls"].shape[0]
+    nz = mask.shape[-1]
+    dtype = torch.uint8 if nz < 256 else torch.long  # the per-column maxima over a byte are 10x faster
+    level = torch.arange(nz, device=mask.device, dtype=dtype)
+    i, j = agents["columns"].unbind(1)
+    lowest = nz - (mask * (nz - level)).amax(-1)[i, j].long()  # Z on a column without an agent voxel
+    highest = (mask * (level + 1)).amax(-1)[i, j].long()
+    slot = agents["column_slot"]
+    bottom = slot.new_full((n + 1,), nz).scatter_reduce_(0, slot, lowest, "amin")[:n]
+    return bottom, slot.new_zeros(n + 1).scatter_reduce_(0, slot, highest, "amax")[:n]
+
+
+def column_slots(ids: Tensor, slots: int) -> Tensor:
+    """Each column's slot ``[X * Y]`` (row-major; component map ``ids``), and ``slots`` (one past
+    the last) off the agents: per-slot sums over the columns gather there, then are dropped."""
+    return torch.where(ids > 0, ids - 1, slots).flatten()
+
+
+def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Tensor:
+    """Per slot, its voxels of each class ``[slots, NUM_CLASSES]`` int64: on the CPU from the
+    agents' voxels (found on the host: a few percent of the frame), elsewhere from every voxel
+    (nothing waits for the device)."""
+    votes = ids.new_zeros(slots + 1, NUM_CLASSES)
+    if reads_host(frame.device):
+        ijz = is_agent.nonzero()
+        label = frame[is_agent].long()
+        votes.index_put_((ids[ijz[:, 0], ijz[:, 1]] - 1, label), torch.ones_like(label), accumulate=True)
+    else:
+        slot = torch.where(is_agent, ids[..., None] - 1, slots)
+        votes.view(-1).index_add_(0, (slot * NUM_CLASSES + frame.long()).flatten(),
+                                  torch.ones(1, dtype=torch.long, device=frame.device).expand(frame.numel()))
+    return votes[:slots]
 
 
 def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
-    """Per present component (:func:`frame_agents`), the index of the nearest previous component
+    """Per present slot (:func:`frame_agents`), the slot of the nearest valid previous component
     of its class whose centroid lies within ``gate_cells``, else -1: ``[n]`` int64."""
     n = present["cls"].shape[0]
     if n == 0 or previous["cls"].shape[0] == 0:
         return torch.full((n,), -1, dtype=torch.long, device=present["cls"].device)
     dist = (present["centroid"][:, None] - previous["centroid"][None]).norm(dim=-1)
-    dist = dist.masked_fill(present["cls"][:, None] != previous["cls"][None], math.inf)
-    nearest, match = dist.min(1)
+    other = (present["cls"][:, None] != previous["cls"][None]) | ~previous["valid"][None]
+    nearest, match = dist.masked_fill(other, math.inf).min(1)
     return torch.where(nearest <= gate_cells, match, torch.full_like(match, -1))
 
 
 def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
-    """Per present component, its velocity in cells per step ``[n, 2]``: the displacement of its
+    """Per present slot, its velocity in cells per step ``[n, 2]``: the displacement of its
     centroid from the nearest previous component of its class (both in the present frame,
     :func:`match_components`); 0 without one within ``gate_cells``."""
     return _matched_steps(present, previous, match_components(present, previous, gate_cells))
 
 
+def _gather(values: Tensor, index: Tensor) -> Tensor:
+    """``values[index]`` where ``index >= 0``, anything elsewhere (zeros if ``values`` is empty):
+    a lookup that reads nothing on the host, for a ``torch.where`` on ``index >= 0``."""
+    if values.shape[0] == 0:
+        return values.new_zeros(index.shape + values.shape[1:])
+    return values[index.clamp(min=0)]
+
+
 def _matched_steps(present: dict[str, Tensor], previous: dict[str, Tensor], match: Tensor) -> Tensor:
     """:func:`agent_velocities` for a given ``match`` (:func:`match_components`)."""
-    velocity = torch.zeros(match.shape[0], 2, dtype=torch.float64, device=match.device)
-    found = match >= 0
-    velocity[found] = present["centroid"][found] - previous["centroid"][match[found]]
-    return velocity
+    found = (match >= 0)[:, None]
+    return torch.where(found, present["centroid"] - _gather(previous["centroid"], match), 0.0)
 
 
-def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: int) -> Tensor:
+def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: int,
+                keep: Tensor | None = None) -> Tensor:
     """``frame`` ``[X, Y, Z]`` with its agents (:func:`frame_agents`) moved: per step ``s`` and
-    component ``c`` by ``shift[s, c]`` ``[S, n, 2]`` whole grid cells. The agents' voxels of the
-    frame become ``free`` and each component's voxels (whole columns, heights kept) are pasted
-    at their shifted place; what leaves the grid is dropped. Returns ``[S, X, Y, Z]``."""
+    slot ``c`` by ``shift[s, c]`` ``[S, n, 2]`` whole grid cells. The agents' voxels of the
+    frame become ``free`` and each agent's voxels (whole columns, heights kept) are pasted at
+    their shifted place, the agents ``keep`` ``[n]`` only (all when None); what leaves the grid
+    is dropped, and where two land on one voxel the one later in row-major order wins. Returns
+    ``[S, X, Y, Z]``."""
     nx, ny, nz = frame.shape
     steps = shift.shape[0]
     frames = frame.masked_fill(agents["mask"], free).expand(steps, nx, ny, nz).clone()
-    ijz = agents["ijz"]
-    if ijz.shape[0]:
-        moved = ijz[None, :, :2] + shift[:, agents["component"]]  # [S, V, 2]
+    if agents["cls"].shape[0] == 0:
+        return frames
+    paste = agents["mask"] if keep is None else agents["mask"] & keep[(agents["ids"] - 1).clamp(min=0)][..., None]
+    if reads_host(frame.device):
+        ijz = paste.nonzero()
+        moved = ijz[None, :, :2] + shift[:, agents["ids"][ijz[:, 0], ijz[:, 1]] - 1]  # [S, V, 2]
         inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
         step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
         z = ijz[None, :, 2].expand_as(inside)
         frames[step[inside], moved[..., 0][inside], moved[..., 1][inside], z[inside]] = (
-            agents["label"].to(frames.dtype).expand(steps, -1)[inside])
-    return frames
+            frame[paste].to(frames.dtype).expand(steps, -1)[inside])
+        return frames
+    # every voxel at once: each target voxel takes the label of the last source voxel landing on it
+    voxels = nx * ny * nz
+    d = shift[:, (agents["ids"] - 1).clamp(min=0)]  # [S, X, Y, 2]
+    i = torch.arange(nx, device=frame.device)[:, None] + d[..., 0]
+    j = torch.arange(ny, device=frame.device)[None, :] + d[..., 1]
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [S, X, Y]
+    target = (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1))[..., None] * nz + torch.arange(nz, device=frame.device)
+    target = target + torch.arange(steps, device=frame.device).view(-1, 1, 1, 1) * voxels
+    target = torch.where(paste[None] & inside[..., None], target, steps * voxels)  # the last: dropped
+    source = torch.arange(voxels, device=frame.device).view(1, nx, ny, nz).expand_as(target)
+    winner = torch.full((steps * voxels + 1,), -1, dtype=torch.long, device=frame.device).scatter_reduce_(
+        0, target.flatten(), source.flatten(), "amax")[:-1].view(steps, nx, ny, nz)
+    return torch.where(winner >= 0, frame.flatten()[winner.clamp(min=0)], frames)
 
 
 def component_shifts(agents: dict[str, Tensor], displacement: Tensor) -> Tensor:
-    """Per step and agent component of :func:`frame_agents`, the mean of a per-plane-cell
-    forward ``displacement`` ``[S, 2, H, W]`` (plane cells) over the component's grid columns,
-    in grid cells: ``[S, n, 2]`` float. A component moves as a whole (a car does not stretch)."""
+    """Per step and agent slot of :func:`frame_agents`, the mean of a per-plane-cell forward
+    ``displacement`` ``[S, 2, H, W]`` (plane cells) over the agent's grid columns, in grid
+    cells: ``[S, n, 2]`` float64 (0 for an empty slot). An agent moves as a whole (a car does
+    not stretch)."""
     ids = agents["ids"]
     nx, ny = ids.shape
     h, w = displacement.shape[-2:]
     fx, fy = -(-nx // h), -(-ny // w)
-    cols = (ids > 0).nonzero()
     n = agents["cls"].shape[0]
-    component = ids[cols[:, 0], cols[:, 1]] - 1
-    per_column = displacement[:, :, cols[:, 0] // fx, cols[:, 1] // fy].double()  # [S, 2, N]
-    total = per_column.new_zeros(displacement.shape[0], 2, n).index_add_(2, component, per_column)
-    count = torch.bincount(component, minlength=n).clamp(min=1).double()
+    slot, columns = agents["column_slot"], agents["columns"]
+    per_column = displacement[:, :, columns[:, 0] // fx, columns[:, 1] // fy].double()  # [S, 2, N]
+    total = per_column.new_zeros(displacement.shape[0], 2, n + 1).index_add_(2, slot, per_column)[..., :n]
+    count = per_column.new_zeros(n + 1).index_add_(0, slot, torch.ones_like(per_column[0, 0]))[:n].clamp(min=1)
     scale = total.new_tensor([fx, fy]).view(1, 2, 1)
     return (total / count * scale).transpose(1, 2)
 
 
 def chained_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], older: dict[str, Tensor],
                        gate_cells: float) -> Tensor:
-    """Per present component, its mean velocity over the last two steps ``[n, 2]`` (cells per
-    step) along the matched chain present -> previous -> older (each link
-    :func:`match_components`); where the chain breaks, the last step's velocity
-    (:func:`agent_velocities`). Following the chain, rather than matching the present against
-    the older frame directly, keeps a queued car from taking the place of the one ahead."""
+    """Per present slot, its mean velocity over the last two steps ``[n, 2]`` (cells per step)
+    along the matched chain present -> previous -> older (each link :func:`match_components`);
+    where the chain breaks, the last step's velocity (:func:`agent_velocities`). Following the
+    chain, rather than matching the present against the older frame directly, keeps a queued
+    car from taking the place of the one ahead."""
     match = match_components(present, previous, gate_cells)
     velocity = _matched_steps(present, previous, match)
-    back = torch.full_like(match, -1)
-    found = match >= 0
-    back[found] = match_components(previous, older, gate_cells)[match[found]]
-    chained = back >= 0
-    velocity[chained] = (present["centroid"][chained] - older["centroid"][back[chained]]) / 2
-    return velocity
+    back = torch.where(match >= 0, _gather(match_components(previous, older, gate_cells), match), -1)
+    two_steps = (present["centroid"] - _gather(older["centroid"], back)) / 2
+    return torch.where((back >= 0)[:, None], two_steps, velocity)
 
 
 def _pooled_field(shape: tuple[int, int], agents: list[tuple[Tensor, Tensor]], plane_shape: tuple[int, int],
@@ -155,9 +245,9 @@ def _pooled_field(shape: tuple[int, int], agents: list[tuple[Tensor, Tensor]], p
     # per grid column: the values and whether it holds an agent
     columns = torch.zeros(len(agents), c + 1, nx, ny, dtype=torch.float32, device=device)
     for n, (ids, values) in enumerate(agents):
-        on = ids > 0
-        columns[n, -1] = on.float()
-        columns[n, :c, on] = values[ids[on] - 1].T.float()
+        columns[n, -1] = (ids > 0).float()
+        with_none = torch.cat([values, values.new_zeros(1, c)])  # the last: off the agents
+        columns[n, :c] = with_none[column_slots(ids, values.shape[0])].T.reshape(c, nx, ny).float()
     pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
     count, agent = pooled[:, -1:], pooled[:, -1:] > 0
     field = pooled[:, :-1] / count.clamp(min=1e-6)  # 0 where no agent column
@@ -189,10 +279,11 @@ def agent_velocity_field(
         raise ValueError(f"agent_velocity_field: previous {list(previous.shape)} and present "
                          f"{list(present.shape)} differ in shape")
     wanted = torch.tensor(classes, dtype=present.dtype, device=present.device)
+    slots = agent_slots(present.device)
     agents = []
     for n in range(present.shape[0]):
-        now = frame_agents(present[n], wanted)
-        agents.append((now["ids"], agent_velocities(now, frame_agents(previous[n], wanted), gate / VOXEL_SIZE)))
+        now = frame_agents(present[n], wanted, slots)
+        agents.append((now["ids"], agent_velocities(now, frame_agents(previous[n], wanted, slots), gate / VOXEL_SIZE)))
     return _pooled_field(tuple(present.shape[1:3]), agents, plane_shape, 2, present.device)
 
 
@@ -207,9 +298,10 @@ def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float
         raise ValueError(f"tracker_velocities: frames must be [B, 3, X, Y, Z], got {list(frames.shape)}")
     wanted = torch.tensor(AGENT_CLASSES, dtype=frames.dtype, device=frames.device)
     gate_cells = gate / VOXEL_SIZE
+    slots = agent_slots(frames.device)
     agents = []
     for n in range(frames.shape[0]):
-        older, previous, now = (frame_agents(frames[n, t], wanted) for t in range(3))
+        older, previous, now = (frame_agents(frames[n, t], wanted, slots) for t in range(3))
         velocity = torch.cat([agent_velocities(now, previous, gate_cells),
                               chained_velocities(now, previous, older, gate_cells)], dim=1)
         agents.append((now["ids"], velocity))
@@ -234,29 +326,30 @@ def cell_metres(cells: Tensor, pose: Tensor) -> Tensor:
 
 
 def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
-    """Per present component (the last of ``agents``, :func:`frame_agents` of each frame), the
-    index of its component in every frame, following it back from the present: ``[n, T]``
-    int64, -1 where it was lost (and in every frame before). The first step back searches the
-    tracker's gate, the next ones ``FOLLOW_GATE`` around the position its velocity predicts."""
+    """Per present slot (the last of ``agents``, :func:`frame_agents` of each frame), the slot of
+    its agent in every frame, following it back from the present: ``[n, T]`` int64, -1 where
+    it was lost (and in every frame before; and for an empty slot). The first step back
+    searches the tracker's gate, the next ones ``FOLLOW_GATE`` around the position its
+    velocity predicts."""
     now = agents[-1]
     n, frames = now["cls"].shape[0], len(agents)
     device = now["centroid"].device
     match = torch.full((n, frames), -1, dtype=torch.long, device=device)
-    match[:, -1] = torch.arange(n, device=device)
+    match[:, -1] = torch.where(now["valid"], torch.arange(n, device=device), -1)
     position = cell_metres(now["centroid"], poses[-1])
     velocity = torch.zeros_like(position)
     gate = torch.full((n,), TRACK_GATE, dtype=torch.float64, device=device)
-    alive = torch.ones(n, dtype=torch.bool, device=device)
+    alive = now["valid"].clone()
     for t in range(frames - 2, -1, -1):
         before = agents[t]
         if before["cls"].shape[0] == 0:
             break
         found = cell_metres(before["centroid"], poses[t])
         dist = (position - velocity)[:, None].sub(found[None]).norm(dim=-1)
-        dist = dist.masked_fill(now["cls"][:, None] != before["cls"][None], math.inf)
-        nearest, index = dist.min(1)
+        other = (now["cls"][:, None] != before["cls"][None]) | ~before["valid"][None]
+        nearest, index = dist.masked_fill(other, math.inf).min(1)
         ok = alive & (nearest <= gate)
-        match[ok, t] = index[ok]
+        match[:, t] = torch.where(ok, index, match[:, t])
         velocity = torch.where(ok[:, None], position - found[index], velocity)
         position = torch.where(ok[:, None], found[index], position)
         gate = torch.where(ok, torch.full_like(gate, FOLLOW_GATE), gate)

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from t3fast.agents.boxes import AgentBoxes, fit_agent_boxes
-from t3fast.agents.tracker import tracker_velocities
+from t3fast.agents.tracker import agent_slots, tracker_velocities
 from t3fast.forecast.records import Agents, Past
 from t3fast.models.ego_motion import warp_sequence
 
@@ -31,8 +31,9 @@ def fitted_boxes(occupancy: Tensor, poses: Tensor) -> tuple[list[AgentBoxes], li
     ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`)
     and the present's agent map ``[X, Y]`` (0 off the agents, else 1 + the agent's index)."""
     boxes, ids = [], []
+    slots = agent_slots(occupancy.device)
     for n in range(occupancy.shape[0]):
-        now, fit = fit_agent_boxes(occupancy[n], poses[n])
+        now, fit = fit_agent_boxes(occupancy[n], poses[n], slots=slots)
         boxes.append(fit)
         ids.append(now["ids"])
     return boxes, ids

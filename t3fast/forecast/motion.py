@@ -15,7 +15,7 @@ from torch import Tensor
 
 from t3fast.agents.box_kinematics import ego_step
 from t3fast.agents.boxes import AgentBoxes
-from t3fast.agents.tracker import component_shifts, frame_agents
+from t3fast.agents.tracker import agent_slots, component_shifts, frame_agents
 from t3fast.data.classes import AGENT_CLASSES, VOXEL_SIZE
 from t3fast.forecast.records import AgentMoves, Agents, Past, Scene
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
@@ -37,9 +37,10 @@ class MoveAgents:
     @torch.no_grad()
     def __call__(self, past: Past, agents: Agents, scene: Scene) -> list[AgentMoves]:
         present = past.present_labels
+        slots = agent_slots(present.device)
         moves = []
         for n in range(present.shape[0]):
-            now = frame_agents(present[n], _AGENTS.to(present.device))
+            now = frame_agents(present[n], _AGENTS.to(present.device), slots)
             shift = component_shifts(now, scene.displacements[n])
             fitted = agents.boxes[n] if agents.boxes is not None else None
             moves.append(self._move(past, n, now, shift, fitted, agents.ids))

@@ -19,6 +19,7 @@ from t3fast.agents.boxes import draw_agent_boxes
 from t3fast.agents.tracker import move_agents
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, in_classes
 from t3fast.forecast.records import AgentMoves, Past, Scene
+from t3fast.host_syncs import reads_host
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import frame_queries, unwarp_sequence, voxel_queries
 from t3fast.models.triplane import Triplane
@@ -155,11 +156,9 @@ class DrawAgents:
     def __call__(self, past: Past, scene: Scene, moves: list[AgentMoves] | None, poses: Tensor) -> Tensor:
         present = past.present_labels
         scenes = []
-        for n, move in enumerate(moves):
-            voxels = ~move.as_box.to(present.device)[move.agents["component"]]
-            kept = dict(move.agents, ijz=move.agents["ijz"][voxels], label=move.agents["label"][voxels],
-                        component=move.agents["component"][voxels])
-            scenes.append(move_agents(present[n], kept, move.shift.round().long(), FREE))
+        for n, move in enumerate(moves):  # the agents drawn as boxes leave their voxels behind
+            scenes.append(move_agents(present[n], move.agents, move.shift.round().long(), FREE,
+                                      keep=~move.as_box.to(present.device)))
         labels = unwarp_sequence(torch.stack(scenes), poses, fill=IGNORE)
         self._fill_unseen(labels, scene.futures, poses)
         for n, move in enumerate(moves):
@@ -168,8 +167,16 @@ class DrawAgents:
         return labels
 
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
-        """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there."""
+        """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there:
+        decoding those voxels alone where the host may find them
+        (:func:`~t3fast.host_syncs.reads_host`), else every voxel of the frame."""
+        compact = reads_host(labels.device)
         for k, future in enumerate(futures):
+            if not compact:
+                frames = labels[:, k].flatten(1)
+                decoded = self.decoder.predict(future, frame_queries(poses[:, k].float(), self.decoder.grid))
+                frames.copy_(torch.where(frames == IGNORE, beyond_present(decoded.view_as(frames)), frames))
+                continue
             for n in range(labels.shape[0]):
                 frame = labels[n, k].view(-1)
                 unseen = (frame == IGNORE).nonzero().squeeze(1)

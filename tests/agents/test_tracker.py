@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from t3fast.agents.tracker import agent_velocity_field, bev_components, tracker_velocities
+from t3fast import ops
+from t3fast.agents.tracker import agent_velocity_field, tracker_velocities
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN
 
 
@@ -81,8 +82,8 @@ def test_two_step_velocity_follows_the_matched_chain_not_the_nearest_car_two_fra
 
 
 def test_a_bev_covered_by_agents_everywhere_is_one_component():
-    labels, n = bev_components(torch.ones(5, 4, dtype=torch.bool))
-    assert n == 1 and torch.equal(labels, torch.ones(5, 4, dtype=torch.long))
+    labels, n = ops.bev_components(torch.ones(1, 5, 4, dtype=torch.bool))
+    assert n.tolist() == [1] and torch.equal(labels[0], torch.ones(5, 4, dtype=torch.long))
     present = torch.full((1, 6, 6, 2), CAR, dtype=torch.uint8)  # every column holds an agent
     assert (agent_velocity_field(present, present.clone(), (3, 3)) == 0).all()
 
@@ -126,3 +127,76 @@ def test_component_shifts_average_the_displacement_over_each_agent_in_grid_cells
     assert (shifts[[0, 2]] == 0).all()
     empty = frame_agents(frame.masked_fill(frame == CAR, FREE), torch.tensor(AGENT_CLASSES, dtype=torch.uint8))
     assert component_shifts(empty, displacement).shape == (3, 0, 2)
+
+
+def _busy_frame(seed: int = 0) -> torch.Tensor:
+    """A frame of many agents of mixed classes (some components of two), on a ground floor."""
+    from t3fast.data.classes import AGENT_CLASSES
+
+    g = torch.Generator().manual_seed(seed)
+    frame = torch.full((40, 36, 6), FREE, dtype=torch.uint8)
+    frame[..., 0] = DRIVEABLE_SURFACE
+    classes = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    for _ in range(30):
+        r, c = torch.randint(0, 37, (1,), generator=g).item(), torch.randint(0, 33, (1,), generator=g).item()
+        z = torch.randint(1, 4, (1,), generator=g).item()
+        frame[r : r + 3, c : c + 2, z : z + 2] = classes[torch.randint(0, len(classes), (1,), generator=g)]
+    return frame
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_agents_in_fixed_slots_are_the_counted_agents_and_empty_slots_after_them(seed):
+    from t3fast.agents.tracker import agent_levels, frame_agents
+    from t3fast.data.classes import AGENT_CLASSES
+    from t3fast.host_syncs import sync_free
+
+    frame, classes = _busy_frame(seed), torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    counted = frame_agents(frame, classes)
+    n = counted["cls"].shape[0]
+    assert 10 < n < 40 and counted["valid"].all()
+    with sync_free():  # the votes from every voxel, as on a GPU
+        fixed = frame_agents(frame, classes, slots=48)
+    assert torch.equal(fixed["ids"], counted["ids"]) and torch.equal(fixed["mask"], counted["mask"])
+    assert fixed["valid"].tolist() == [True] * n + [False] * (48 - n)
+    for key in ("cls", "votes", "centroid"):
+        assert torch.equal(fixed[key][:n], counted[key]), key
+    assert (fixed["cls"][n:] == -1).all() and (fixed["votes"][n:] == 0).all()
+    bottom, top = agent_levels(counted)
+    assert torch.equal(torch.stack(agent_levels(fixed))[:, :n], torch.stack([bottom, top]))
+    ijz = counted["mask"].nonzero()  # the levels of every agent's voxels, one by one
+    slot = counted["ids"][ijz[:, 0], ijz[:, 1]] - 1
+    assert torch.equal(bottom, torch.full((n,), 6).scatter_reduce(0, slot, ijz[:, 2], "amin"))
+    assert torch.equal(top, torch.zeros(n, dtype=torch.long).scatter_reduce(0, slot, ijz[:, 2] + 1, "amax"))
+
+
+def test_components_beyond_the_slots_are_not_agents():
+    from t3fast.agents.tracker import frame_agents
+    from t3fast.data.classes import AGENT_CLASSES
+
+    frame, classes = _busy_frame(), torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    counted = frame_agents(frame, classes)
+    few = frame_agents(frame, classes, slots=5)
+    assert few["valid"].all() and few["ids"].max() == 5
+    assert torch.equal(few["ids"], torch.where(counted["ids"] <= 5, counted["ids"], 0))
+    assert torch.equal(few["mask"], counted["mask"] & (few["ids"] > 0)[..., None])
+    assert torch.equal(few["centroid"], counted["centroid"][:5])
+
+
+def test_moving_agents_in_slots_without_host_reads_gives_the_compacted_result():
+    """Every voxel at once (a GPU run) against the agents' voxels found on the host: the same
+    frames, where agents land on one another (the later in row-major order wins) and leave the
+    grid, and with some agents kept out (drawn as boxes)."""
+    from t3fast.agents.tracker import frame_agents, move_agents
+    from t3fast.data.classes import AGENT_CLASSES
+    from t3fast.host_syncs import sync_free
+
+    frame, classes = _busy_frame(2), torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    agents = frame_agents(frame, classes)
+    n = agents["cls"].shape[0]
+    shift = torch.randint(-6, 7, (4, n, 2), generator=torch.Generator().manual_seed(3))
+    keep = torch.arange(n) % 3 != 0
+    for kept in (None, keep):
+        compacted = move_agents(frame, agents, shift, FREE, keep=kept)
+        with sync_free():
+            assert torch.equal(move_agents(frame, agents, shift, FREE, keep=kept), compacted)
+    assert (compacted != frame).any()

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import pytest
 import torch
 
-from t3fast.agents.tracker import bev_components
+from t3fast import ops
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, MANMADE, PEDESTRIAN, TRUCK
 from t3fast.evaluation.baselines import (
     constant_velocity,
@@ -78,36 +77,6 @@ def _track(frames: list[torch.Tensor], poses: torch.Tensor | None = None, steps:
     return track_gt_ego(past, _static_poses() if poses is None else poses, steps)[0]
 
 
-@pytest.mark.parametrize("shape, density", [((30, 30), 0.45), ((37, 23), 0.1), ((37, 23), 0.35), ((37, 23), 0.6)])
-def test_components_are_eight_connected_and_match_a_flood_fill(shape, density):
-    mask = torch.rand(*shape, generator=torch.Generator().manual_seed(0)) < density
-    labels, n = bev_components(mask)
-    seen = torch.zeros_like(labels)
-    count = 0
-    for start in zip(*torch.nonzero(mask, as_tuple=True)):
-        if seen[start]:
-            continue
-        count += 1
-        stack = [tuple(int(v) for v in start)]
-        seen[start] = count
-        while stack:
-            i, j = stack.pop()
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    a, b = i + di, j + dj
-                    if 0 <= a < shape[0] and 0 <= b < shape[1] and mask[a, b] and not seen[a, b]:
-                        seen[a, b] = count
-                        stack.append((a, b))
-    assert n == count and bool((labels[~mask] == 0).all())
-    # the same partition (up to numbering)
-    pairs = torch.unique(torch.stack([labels[mask], seen[mask]], -1), dim=0)
-    assert pairs.shape[0] == n
-    diagonal = torch.zeros(4, 4, dtype=torch.bool)
-    diagonal[0, 0] = diagonal[1, 1] = True
-    assert bev_components(diagonal)[1] == 1
-    assert bev_components(torch.zeros(4, 4, dtype=torch.bool))[1] == 0
-
-
 def test_tracker_moves_a_car_by_its_velocity():
     frames = [_scene([(CAR, 4 + 2 * t, 10, 3, 2)]) for t in range(5)]  # 2 cells per step along x
     future = _track(frames)
@@ -141,7 +110,7 @@ def test_tracker_associates_within_a_class():
     def frame(t: int) -> torch.Tensor:
         return _scene([(CAR, 3 + 4 * t, 10, 3, 2), (TRUCK, 26 - 2 * t, 13, 3, 3)])
 
-    assert bev_components(torch.isin(frame(4), torch.tensor([CAR, TRUCK], dtype=torch.uint8)).any(-1))[1] == 2
+    assert ops.bev_components(torch.isin(frame(4), torch.tensor([CAR, TRUCK], dtype=torch.uint8)).any(-1)[None])[1] == 2
     future = _track([frame(t) for t in range(5)])
     for k in range(1, 4):
         assert torch.equal(future[k - 1], frame(4 + k)), k

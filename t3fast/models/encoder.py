@@ -6,6 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.data.classes import FREE, IGNORE
+from t3fast.host_syncs import reads_host
 from t3fast.models.blocks import ResBlock3d, group_norm
 from t3fast.models.config import AutoencoderConfig
 from t3fast.models.triplane import Triplane
@@ -14,11 +15,15 @@ from t3fast.ops import axis_pool, label_conv3d
 
 def check_labels(labels: Tensor, grid: tuple[int, int, int], num_classes: int) -> None:
     """Raises ValueError unless ``labels`` is an integer ``[B, *grid]`` tensor of class ids
-    in ``0 .. num_classes - 1`` or the ignore id 255."""
+    in ``0 .. num_classes - 1`` or the ignore id 255. The ids are read where the host is read
+    (:func:`~t3fast.host_syncs.reads_host`: the CPU); on a GPU that read would stall every
+    encoding, and the callers check them once (the forecast its inputs, the data its files)."""
     if labels.dim() != 4 or tuple(labels.shape[1:]) != tuple(grid):
         raise ValueError(f"labels must have shape [B, {', '.join(map(str, grid))}], got {list(labels.shape)}")
     if labels.is_floating_point() or labels.is_complex() or labels.dtype == torch.bool:
         raise ValueError(f"labels must be an integer tensor of class ids, got {labels.dtype}")
+    if not reads_host(labels.device):
+        return
     bad = ((labels < 0) | (labels >= num_classes)) & (labels != IGNORE)
     if bool(bad.any()):
         raise ValueError(

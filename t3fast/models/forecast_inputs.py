@@ -7,18 +7,23 @@ any frame is encoded. Motion is bounded to what driving can do: an ego moves at 
 origin of its world frame; beyond those, poses and displacements are not a vehicle's
 (a 1e30 m step makes the planned trajectory NaN and every future frame free).
 
-The checks that read values back from the device (finite, bounded, rigid) are skipped inside
-``torch.compile`` graphs and CUDA graph capture, where a read-back would break the graph:
-eager calls check.
+The checks of values (class ids, finite, bounded, rigid) compute on the device whether they
+pass; under :func:`read_together` (as :meth:`~t3fast.models.world_model.T3Former.forecast` runs
+them) they are read back in one host synchronisation, the first that fails raising as if each
+had been read on its own. They are skipped inside ``torch.compile`` graphs and CUDA graph
+capture, where a read-back would break the graph: eager calls check.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from t3fast.data.classes import IGNORE
 from t3fast.data.route import COMMANDS
 from t3fast.errors import UsageError
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
@@ -46,6 +51,37 @@ def can_read_values(values: Tensor) -> bool:
     return not (values.is_cuda and torch.cuda.is_current_stream_capturing())
 
 
+_pending: list[list[tuple[Tensor, Callable[[], None]]]] = []
+
+
+@contextmanager
+def read_together() -> Iterator[None]:
+    """The value checks run inside are read back together when it closes, in one host
+    synchronisation; the first of them that fails then raises its own message."""
+    pending: list[tuple[Tensor, Callable[[], None]]] = []
+    _pending.append(pending)
+    try:
+        yield
+    finally:
+        _pending.pop()
+    if pending:
+        passed = torch.stack([ok.reshape(()) for ok, _ in pending])
+        if bool(passed.all()):  # the one read when all is well
+            return
+        for ok, (_, fail) in zip(passed.tolist(), pending):
+            if not ok:
+                fail()
+
+
+def _require(ok: Tensor, fail: Callable[[], None]) -> None:
+    """``fail()`` (which raises) unless ``ok`` (a bool tensor on the device) holds: read now, or
+    with the other checks when :func:`read_together` closes."""
+    if _pending:
+        _pending[-1].append((ok, fail))
+    elif not bool(ok):
+        fail()
+
+
 def _index(mask: Tensor) -> tuple[int, ...]:
     """The index of the first True entry of a boolean tensor."""
     return tuple(mask.nonzero()[0].tolist())
@@ -70,11 +106,14 @@ def check_finite(name: str, values: Tensor) -> None:
     non-finite pose or displacement would make the whole forecast NaN)."""
     if not values.is_floating_point() or not can_read_values(values):
         return
-    bad = ~torch.isfinite(values)
-    if bool(bad.any()):
+
+    def fail() -> None:
+        bad = ~torch.isfinite(values)
         index = _index(bad)
         raise UsageError(f"{name} must be finite, but {_at(name, index)} is "
                          f"{values[index].item()} ({int(bad.sum())} non-finite values)")
+
+    _require(torch.isfinite(values).all(), fail)
 
 
 def check_steps(name: str, steps: Tensor, what: str = "") -> None:
@@ -85,12 +124,14 @@ def check_steps(name: str, steps: Tensor, what: str = "") -> None:
     if not can_read_values(steps):
         return
     length = steps.double().norm(dim=-1)  # double: a float32 step of 3e38 m has a length
-    if bool((length <= MAX_STEP_METRES).all()):  # False for NaN too
-        return
-    check_finite(name, steps)
-    index = _index(length > MAX_STEP_METRES)
-    raise UsageError(f"{_at(name, index)} moves the ego {length[index].item():.3g} m in one frame{what}; "
-                     f"{_STEP_LIMIT}")
+
+    def fail() -> None:
+        check_finite(name, steps)
+        index = _index(length > MAX_STEP_METRES)
+        raise UsageError(f"{_at(name, index)} moves the ego {length[index].item():.3g} m in one frame{what}; "
+                         f"{_STEP_LIMIT}")
+
+    _require((length <= MAX_STEP_METRES).all(), fail)  # False for NaN too
 
 
 def steps_into(positions: Tensor, start: Tensor | None = None) -> Tensor:
@@ -127,9 +168,13 @@ def check_command(command: Tensor | None, batch: int, reads_command: bool) -> No
             command.shape) != [batch]:
         got = f"{command.dtype} {list(command.shape)}" if isinstance(command, Tensor) else type(command).__name__
         raise UsageError(f"command must be route commands int64 [B] with B = {batch}, got {got}")
-    if command.numel() and not bool(((command >= 0) & (command < len(COMMANDS))).all()):
+
+    def fail() -> None:
         bad = command[(command < 0) | (command >= len(COMMANDS))][0]
         raise UsageError(f"command values must be in 0..{len(COMMANDS) - 1} ({', '.join(COMMANDS)}), got {int(bad)}")
+
+    if can_read_values(command):
+        _require(((command >= 0) & (command < len(COMMANDS))).all(), fail)
 
 
 def check_past_occupancy(past_occupancy: Any, grid: tuple[int, int, int]) -> None:
@@ -143,6 +188,20 @@ def check_past_occupancy(past_occupancy: Any, grid: tuple[int, int, int]) -> Non
         raise UsageError(f"past_occupancy must be integer class ids (uint8), got {past_occupancy.dtype}")
     if shape[0] == 0:
         raise UsageError("past_occupancy holds no sample (B = 0): forecast at least one")
+
+
+def check_class_ids(past_occupancy: Tensor, num_classes: int) -> None:
+    """Every label of ``past_occupancy`` must be a class id in ``0 .. num_classes - 1`` or the
+    ignore id 255."""
+    if not can_read_values(past_occupancy):
+        return
+    bad = ((past_occupancy < 0) | (past_occupancy >= num_classes)) & (past_occupancy != IGNORE)
+
+    def fail() -> None:
+        raise UsageError(f"past_occupancy must be class ids in 0..{num_classes - 1} or {IGNORE} (ignore), got "
+                         f"{past_occupancy[bad].unique()[:8].tolist()} at {_at('past_occupancy', _index(bad))}")
+
+    _require(~bad.any(), fail)
 
 
 def check_past_motion(past_motion: Any, batch: int, frames: int) -> None:
@@ -177,12 +236,14 @@ def check_rigid(name: str, poses: Tensor) -> None:
     off = torch.maximum(off, (torch.linalg.det(rotation) - 1).abs())
     last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
     off = torch.maximum(off, (m[..., 3, :] - last).abs().amax(-1))
-    if bool((off <= RIGID_TOLERANCE).all()):
-        return
-    index = _index(off > RIGID_TOLERANCE)
-    raise UsageError(f"{_at(name, index)} is not a rigid ego -> world pose: its rotation block must be orthonormal "
-                     f"with determinant 1 and its last row 0, 0, 0, 1 (within {RIGID_TOLERANCE:g}), "
-                     f"off by {off[index].item():.3g}")
+
+    def fail() -> None:
+        index = _index(off > RIGID_TOLERANCE)
+        raise UsageError(f"{_at(name, index)} is not a rigid ego -> world pose: its rotation block must be "
+                         f"orthonormal with determinant 1 and its last row 0, 0, 0, 1 (within {RIGID_TOLERANCE:g}), "
+                         f"off by {off[index].item():.3g}")
+
+    _require((off <= RIGID_TOLERANCE).all(), fail)
 
 
 def check_world_positions(name: str, translations: Tensor) -> None:
@@ -191,11 +252,13 @@ def check_world_positions(name: str, translations: Tensor) -> None:
     if not can_read_values(translations):
         return
     distance = translations.double().norm(dim=-1)
-    if bool((distance <= MAX_WORLD_METRES).all()):
-        return
-    index = _index(distance > MAX_WORLD_METRES)
-    raise UsageError(f"{_at(name, index)} places the ego {distance[index].item():.3g} m from the world origin; "
-                     f"at most {MAX_WORLD_METRES:g} m is accepted (map, UTM and Earth-centred frames stay within)")
+
+    def fail() -> None:
+        index = _index(distance > MAX_WORLD_METRES)
+        raise UsageError(f"{_at(name, index)} places the ego {distance[index].item():.3g} m from the world origin; "
+                         f"at most {MAX_WORLD_METRES:g} m is accepted (map, UTM and Earth-centred frames stay within)")
+
+    _require((distance <= MAX_WORLD_METRES).all(), fail)
 
 
 def check_planner_dtype(name: str, motion: Tensor, planner: nn.Module) -> None:

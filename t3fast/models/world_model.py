@@ -16,7 +16,14 @@ from t3fast.models.config import AutoencoderConfig, WorldModelConfig
 from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.encoder import TriplaneEncoder
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
-from t3fast.models.forecast_inputs import check_devices, check_past_motion, check_past_occupancy, check_plan
+from t3fast.models.forecast_inputs import (
+    check_class_ids,
+    check_devices,
+    check_past_motion,
+    check_past_occupancy,
+    check_plan,
+    read_together,
+)
 from t3fast.models.forecaster import DeltaTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
 from t3fast.models.route_planner import RoutePlanner
@@ -138,6 +145,8 @@ class T3Former(nn.Module):
                              f"trained on {self.forecaster.history} (world_config.history)")
         check_devices(next(self.parameters()).device, past_occupancy=past_occupancy, past_motion=past_motion,
                       future_actions=future_actions, command=command)
-        check_past_motion(past_motion, b, t)
-        check_plan(self.forecaster, self.planner, steps, future_actions, command, past_motion)
+        with read_together():  # the values: one host synchronisation
+            check_class_ids(past_occupancy, self.encoder.config.num_classes)
+            check_past_motion(past_motion, b, t)
+            check_plan(self.forecaster, self.planner, steps, future_actions, command, past_motion)
         return self.pipeline(past_occupancy, past_motion, future_actions, steps, command)

@@ -225,3 +225,23 @@ def test_forecast_command_reports_a_window_with_far_poses_in_one_line(tmp_path, 
     assert err.splitlines()[-1].startswith("t3fast forecast: past_motion[0, 0] places the ego 1e+30 m from the "
                                            "world origin; at most 1e+07 m is accepted"), err
     assert not list(out.rglob("*.npz"))
+
+
+def test_class_ids_are_checked_before_encoding(no_encoding):
+    past = _past()
+    past[0, 2, 3, 4, 1] = 40
+    refused(no_encoding, r"^past_occupancy must be class ids in 0\.\.17 or 255 \(ignore\), got \[40\] at "
+            r"past_occupancy\[0, 2, 3, 4, 1\]$", past)
+
+
+def test_of_the_values_read_together_the_first_check_that_fails_is_reported(no_encoding):
+    """One host read for all the values; the refusal is the one an argument-by-argument check
+    would give first (the class ids before the motion, the motion before the actions)."""
+    past, motion = _past(), walking()
+    past[0, 0, 0, 0, 0] = 99
+    motion[0, 1, 0] = math.nan
+    refused(no_encoding, r"^past_occupancy must be class ids", past, motion)
+    refused(no_encoding, r"^past_motion must be finite, but past_motion\[0, 1, 0\] is nan",
+            motion=motion, future_actions=torch.full((1, 6, 2), 1e3))
+    refused(no_encoding, r"^future_actions\[0, 0\] moves the ego 1\.41e\+03 m",
+            future_actions=torch.full((1, 6, 2), 1e3))

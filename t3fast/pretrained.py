@@ -60,14 +60,17 @@ def resolve(name_or_path: str | Path) -> Path:
                           f"({', '.join(shipped_names())})")
 
 
-def load_world_model(name_or_path: str | Path, device: torch.device | str = "cpu") -> T3Former:
+def load_world_model(name_or_path: str | Path, device: torch.device | str = "cpu", compile: bool = False) -> T3Former:
     """A trained :class:`T3Former` in eval mode on ``device``, from a shipped name
-    (:func:`shipped_names`) or a stage-2 checkpoint path. Its sizes are in
-    ``model.autoencoder_config`` and ``model.world_config``. A checkpoint that does not fit its
-    config is refused (:class:`~t3fast.errors.CheckpointError`,
-    :class:`~t3fast.errors.ConfigError`) before the model is allocated."""
+    (:func:`shipped_names`) or a stage-2 checkpoint path; with ``compile``, its forecast compiled
+    whole (:meth:`T3Former.compile_forecast`: on CUDA one CUDA graph; the first forecast of each
+    input shape compiles). Its sizes are in ``model.autoencoder_config`` and
+    ``model.world_config``. A checkpoint that does not fit its config is refused
+    (:class:`~t3fast.errors.CheckpointError`, :class:`~t3fast.errors.ConfigError`) before the
+    model is allocated."""
     path = resolve(name_or_path)
-    return world_model_from_checkpoint(read_checkpoint(path, WORLD_MODEL), path).to(device).eval()
+    model = world_model_from_checkpoint(read_checkpoint(path, WORLD_MODEL), path).to(device).eval()
+    return model.compile_forecast() if compile else model
 
 
 def load_autoencoder(name_or_path: str | Path, device: torch.device | str = "cpu") -> TriplaneAutoencoder:

@@ -4,10 +4,14 @@ and networks choose once (:func:`~t3fast.forecast.pipeline.build_pipeline`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import torch
 from torch import Tensor, nn
 
 from t3fast.errors import UsageError
+from t3fast.forecast.compiled import compiled_forecast
 from t3fast.forecast.encode import encode_sequence
 from t3fast.forecast.pipeline import ForecastPipeline, Layout, build_pipeline, check_layout
 from t3fast.forecast.records import Forecast
@@ -52,6 +56,7 @@ class T3Former(nn.Module):
         # the sizes it was built from (set by from_config): what a checkpoint records
         self.autoencoder_config: AutoencoderConfig | None = None
         self.world_config: WorldModelConfig | None = None
+        self._compiled: Callable[..., Forecast] | None = None  # compile_forecast
 
     @classmethod
     def from_config(cls, autoencoder: AutoencoderConfig, world: WorldModelConfig) -> T3Former:
@@ -149,4 +154,13 @@ class T3Former(nn.Module):
             check_class_ids(past_occupancy, self.encoder.config.num_classes)
             check_past_motion(past_motion, b, t)
             check_plan(self.forecaster, self.planner, steps, future_actions, command, past_motion)
-        return self.pipeline(past_occupancy, past_motion, future_actions, steps, command)
+        return (self._compiled or self.pipeline)(past_occupancy, past_motion, future_actions, steps, command)
+
+    def compile_forecast(self, **options: Any) -> T3Former:
+        """Compile :meth:`forecast` after its input checks into one graph
+        (:func:`~t3fast.forecast.compiled.compiled_forecast`: ``torch.compile`` with ``options``,
+        on CUDA one CUDA graph); call it once the model is on its device. The forecasts are the
+        eager ones. The layouts that draw their agents (the shipped ``wm-small``) trace whole;
+        the others read the host and need ``fullgraph=False``. Returns the model."""
+        self._compiled = compiled_forecast(self.pipeline, next(self.parameters()).device, **options)
+        return self

@@ -9,8 +9,9 @@ Modes:
   eager            the compiled t3fast operators, plain PyTorch around them
   eager-reference  the pure-PyTorch references of the decoder and delta fusion instead
   cuda-graph       ``eager`` captured once in a CUDA graph and replayed (CUDA only)
-  compile          ``torch.compile(mode="reduce-overhead")``: Inductor plus CUDA graphs on a GPU
-                   (``mode="default"`` on the CPU)
+  compile          ``model.compile_forecast()`` (what ``load_world_model(..., compile=True)``
+                   does): the forecast after its input checks traced whole, Inductor plus one
+                   CUDA graph on a GPU (``mode="default"`` on the CPU)
 
 Each row: median and 90th-percentile time of one call, FPS (windows forecast per second:
 batch / median), in eager modes the host synchronisations of one call
@@ -94,8 +95,8 @@ def step_function(model, occupancy, poses, mode: str, device: torch.device):
     if mode in ("eager", "eager-reference"):
         return step, reference_ops(model) if mode == "eager-reference" else contextlib.nullcontext()
     if mode == "compile":
-        compiled = torch.compile(step, mode="reduce-overhead" if device.type == "cuda" else "default")
-        return compiled, contextlib.nullcontext()
+        model.compile_forecast()
+        return step, contextlib.nullcontext()
     if mode == "cuda-graph":
         if device.type != "cuda":
             raise RuntimeError("cuda-graph needs a GPU")

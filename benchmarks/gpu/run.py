@@ -152,7 +152,7 @@ def _forecast_steps(ctx: Context, d: Path) -> list[Step]:
     groups = {"eager": ("tiny", "eager", 1)} if ctx.quick else {
         "eager": ("shipped,small,paper", "eager,eager-reference", 1), "batch-64": ("shipped", "eager", 64),
         "cuda-graph": ("shipped,small,paper", "cuda-graph", 1), "compile-shipped": ("shipped", "compile", 1),
-        "compile-paper": ("paper", "compile", 1)}
+        "compile-batch-64": ("shipped", "compile", 64), "compile-paper": ("paper", "compile", 1)}
     steps = []
     for name, (sizes, modes, batch) in groups.items():
         argv = [PY, f"{HERE}/forecast.py", "--device", ctx.device, "--sizes", sizes, "--modes", modes,

@@ -15,6 +15,8 @@ Conventions
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -141,9 +143,14 @@ def box_footprint(x: float, y: float, length: float, width: float, yaw: float, s
     return slice(i0, i1), slice(j0, j1), inside
 
 
-def in_classes(labels: Tensor, classes: Tensor) -> Tensor:
+def in_classes(labels: Tensor, classes: Tensor | Sequence[int]) -> Tensor:
     """``torch.isin(labels, classes)`` for label volumes (ids 0 .. 255): one gather from a
-    256-entry table instead of a comparison per class (8x faster on a 200 x 200 x 16 frame)."""
+    256-entry table instead of a comparison per class (8x faster on a 200 x 200 x 16 frame).
+    ``classes`` as ints are made on the labels' device (no copy from the host)."""
     table = torch.zeros(256, dtype=torch.bool, device=labels.device)
-    table[classes.to(device=labels.device, dtype=torch.long)] = True
+    if isinstance(classes, Tensor):
+        classes = classes.to(device=labels.device, dtype=torch.long)
+    else:
+        classes = torch.tensor(classes, dtype=torch.long, device=labels.device)
+    table[classes] = True
     return table.take(labels.long())

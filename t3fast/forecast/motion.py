@@ -20,8 +20,6 @@ from t3fast.data.classes import AGENT_CLASSES, VOXEL_SIZE
 from t3fast.forecast.records import AgentMoves, Agents, Past, Scene
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 
-_AGENTS = torch.tensor(AGENT_CLASSES)
-
 
 class MoveAgents:
     """(:class:`Past`, :class:`Agents`, :class:`Scene`) -> per sample :class:`AgentMoves`.
@@ -40,7 +38,7 @@ class MoveAgents:
         slots = agent_slots(present.device)
         moves = []
         for n in range(present.shape[0]):
-            now = frame_agents(present[n], _AGENTS.to(present.device), slots)
+            now = frame_agents(present[n], AGENT_CLASSES, slots)
             shift = component_shifts(now, scene.displacements[n])
             fitted = agents.boxes[n] if agents.boxes is not None else None
             moves.append(self._move(past, n, now, shift, fitted, agents.ids))

@@ -24,9 +24,6 @@ from t3fast.models.decoder import TriplaneDecoder
 from t3fast.models.ego_motion import frame_queries, unwarp_sequence, voxel_queries
 from t3fast.models.triplane import Triplane
 
-_AGENTS = torch.tensor(AGENT_CLASSES)
-_GROUND = torch.tensor(FLAT_GROUND_CLASSES)
-
 
 def present_in_frames(present: Tensor, poses: Tensor) -> Tensor:
     """The present frame's labels ``[B, X, Y, Z]`` moved into the ego frame of each future pose
@@ -50,8 +47,8 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
     sidewalks go on) and everything else is free (continuing walls, trees and cars past the
     edge cost 6.5 IoU points on validation windows; ground alone gained 1.6).
     """
-    agent_change = (decoded != reference) & (in_classes(decoded, _AGENTS) | in_classes(reference, _AGENTS))
-    editable = in_classes(moved, _AGENTS) | (moved == FREE)
+    agent_change = (decoded != reference) & (in_classes(decoded, AGENT_CLASSES) | in_classes(reference, AGENT_CLASSES))
+    editable = in_classes(moved, AGENT_CLASSES) | (moved == FREE)
     inside = torch.where(agent_change & editable, decoded, moved)
     return torch.where(moved == IGNORE, beyond_present(decoded), inside)
 
@@ -59,7 +56,7 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
 def beyond_present(decoded: Tensor) -> Tensor:
     """What a forecast shows beyond the observed present grid: its decoded flat ground (roads
     and sidewalks go on), everything else free."""
-    return torch.where(in_classes(decoded, _GROUND), decoded, torch.full_like(decoded, FREE))
+    return torch.where(in_classes(decoded, FLAT_GROUND_CLASSES), decoded, torch.full_like(decoded, FREE))
 
 
 class DecodeFrames:
@@ -135,7 +132,7 @@ class KeepObservedStatic:
         ``decoded`` ``[N]``, except where those or the observed labels ``observed`` ``[N]`` show an
         agent, where the present triplane ``planes`` (batch 1) is decoded at ``points``
         ``[1, N, 3]`` instead."""
-        need = in_classes(decoded, _AGENTS) | in_classes(observed, _AGENTS)
+        need = in_classes(decoded, AGENT_CLASSES) | in_classes(observed, AGENT_CLASSES)
         reference = decoded.clone()
         if bool(need.any()):
             reference[need] = self.decoder.predict(planes, points[:, need]).view(-1)

@@ -1,7 +1,8 @@
 // CUDA kernels of box_fit. sample_kernel: one block per (agent, frame) marks which cells of the
 // agent's window are samples and writes them, in the window's row-major order, to its slice of
-// the scratch (a record whose ownership is -1 is none) with their count. fit_kernel: one block
-// per agent compacts its samples in order, then runs the Adam steps: every thread sums the
+// the scratch (a record whose ownership is -1 is none) with their count; an agent not fitted
+// writes nothing. fit_kernel: one block per fitted agent compacts its samples in order (the
+// frames that hold some), then runs the Adam steps: every thread sums the
 // gradient rows of its samples, a fixed-order block reduction gives the gradient, and thread 0
 // steps the nine parameters. Sums run in a fixed order: the result does not vary from run to run.
 #include <cuda_runtime.h>
@@ -62,10 +63,14 @@ __global__ void sample_kernel(BoxFitArgs a, float* samples, int* sampled) {
   const int side = 2 * a.window + 1;
   const int64_t cells = static_cast<int64_t>(side) * side;
   Sample* out = reinterpret_cast<Sample*>(samples) + agent_frame * cells;
+  if (!fitted(a.reach[agent])) {  // never read: the fit skips the agent (most slots of a GPU run are empty)
+    if (threadIdx.x == 0) sampled[agent_frame] = 0;
+    return;
+  }
   const double reach = fmin(a.reach[agent], static_cast<double>(a.window));
   const int64_t index = a.track[agent * a.frames + t];
   const double cr = a.centroid[(agent * a.frames + t) * 2], cc = a.centroid[(agent * a.frames + t) * 2 + 1];
-  const bool any = fitted(a.reach[agent]) && index >= 0 && isfinite(cr) && isfinite(cc);
+  const bool any = index >= 0 && isfinite(cr) && isfinite(cc);
   const int r0 = any ? static_cast<int>(rint(fmin(fmax(cr, -1e9), 1e9))) : 0;
   const int c0 = any ? static_cast<int>(rint(fmin(fmax(cc, -1e9), 1e9))) : 0;
   const int64_t* frame = a.ids + (b * a.frames + t) * static_cast<int64_t>(a.x) * a.y;
@@ -93,30 +98,34 @@ __global__ void sample_kernel(BoxFitArgs a, float* samples, int* sampled) {
   if (threadIdx.x == 0) sampled[agent_frame] = static_cast<int>(found[0]);
 }
 
-// Moves the agent's samples (records with ownership >= 0) to the front of its slice, in order.
-// Returns their number (to every thread).
-__device__ int compact(Sample* records, int64_t size) {
+// Moves the agent's samples (records with ownership >= 0) to the front of its slice, in order,
+// reading only the frames that hold some (sampled: their counts). Returns their number (to every
+// thread).
+__device__ int compact(Sample* records, const int* sampled, int frames, int64_t cells) {
   __shared__ int warp_counts[kWarps];
   __shared__ int base;
   const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
   if (threadIdx.x == 0) base = 0;
   __syncthreads();
-  for (int64_t chunk = 0; chunk < size; chunk += blockDim.x) {
-    const int64_t i = chunk + threadIdx.x;
-    const Sample q = i < size ? records[i] : Sample{0.0f, 0.0f, 0.0f, -1.0f};
-    const bool keep = q.owned >= 0.0f;
-    const unsigned ballot = __ballot_sync(0xffffffffu, keep);
-    if (lane == 0) warp_counts[warp] = __popc(ballot);
-    __syncthreads();  // every record of the chunk is read before any is written
-    int offset = base;
-    for (int w = 0; w < warp; ++w) offset += warp_counts[w];
-    offset += __popc(ballot & ((1u << lane) - 1u));
-    if (keep) records[offset] = q;
-    __syncthreads();
-    if (threadIdx.x == 0) {
-      for (int w = 0; w < kWarps; ++w) base += warp_counts[w];
+  for (int t = 0; t < frames; ++t) {
+    if (sampled[t] == 0) continue;  // the same for the whole block
+    for (int64_t chunk = t * cells; chunk < (t + 1) * cells; chunk += blockDim.x) {
+      const int64_t i = chunk + threadIdx.x;
+      const Sample q = i < (t + 1) * cells ? records[i] : Sample{0.0f, 0.0f, 0.0f, -1.0f};
+      const bool keep = q.owned >= 0.0f;
+      const unsigned ballot = __ballot_sync(0xffffffffu, keep);
+      if (lane == 0) warp_counts[warp] = __popc(ballot);
+      __syncthreads();  // every record of the chunk is read before any is written
+      int offset = base;
+      for (int w = 0; w < warp; ++w) offset += warp_counts[w];
+      offset += __popc(ballot & ((1u << lane) - 1u));
+      if (keep) records[offset] = q;
+      __syncthreads();
+      if (threadIdx.x == 0) {
+        for (int w = 0; w < kWarps; ++w) base += warp_counts[w];
+      }
+      __syncthreads();
     }
-    __syncthreads();
   }
   return base;
 }
@@ -147,7 +156,8 @@ __global__ void fit_kernel(BoxFitArgs a, float* samples, const int* sampled, dou
   }
   const int64_t side = 2 * a.window + 1;
   Sample* records = reinterpret_cast<Sample*>(samples) + agent * a.frames * side * side;
-  const int size = compact(records, a.frames * side * side);  // syncs: the shared values are set
+  // syncs: the shared values are set
+  const int size = compact(records, sampled + agent * a.frames, a.frames, side * side);
   const auto prior = static_cast<float>(2.0 * a.accel_prior / window_agents);
   float mean[kParams] = {}, square[kParams] = {};  // thread 0's
   for (int it = 0; it < a.iters; ++it) {

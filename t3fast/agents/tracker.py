@@ -69,8 +69,7 @@ def frame_agents(frame: Tensor, classes: Tensor, slots: int | None = None) -> di
     is_agent = in_classes(frame, classes)
     ids, count = ops.bev_components(is_agent.any(-1)[None])
     ids, count = ids[0], count[0]
-    exact = slots is None
-    if exact:
+    if slots is None:
         slots = int(count)
         valid = torch.ones(slots, dtype=torch.bool, device=frame.device)
     else:

@@ -13,6 +13,7 @@ from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import UsageError
 from t3fast.evaluation.report import evaluate_methods
+from t3fast.host_syncs import sync_free
 from t3fast.pretrained import load_world_model
 
 SHIPPED = ["wm-small", "wm-small-own-frames", "wm-small-no-delta", "wm-small-single-scale", "wm-small-bev"]
@@ -36,6 +37,17 @@ def test_the_forecast_makes_every_tensor_on_its_inputs_device(windows, name):
     with torch.device("meta"):
         got = model.forecast(occ, poses)
     assert got.labels.device.type == "cpu"
+    assert torch.equal(got.labels, expected.labels) and torch.equal(got.trajectory, expected.trajectory)
+
+
+def test_the_forecast_as_a_gpu_runs_it_makes_every_tensor_on_its_inputs_device(windows):
+    """The fixed-size code a GPU runs (agents in slots, whole-frame moves and decodes,
+    :func:`~t3fast.host_syncs.sync_free`), which a CPU run otherwise skips."""
+    model = load_world_model("wm-small")
+    occ, poses = _inputs(windows)
+    expected = model.forecast(occ, poses)
+    with sync_free(), torch.device("meta"):
+        got = model.forecast(occ, poses)
     assert torch.equal(got.labels, expected.labels) and torch.equal(got.trajectory, expected.trajectory)
 
 

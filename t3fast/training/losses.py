@@ -40,16 +40,16 @@ def lovasz_softmax(
             f"lovasz_softmax: expected probs [P, K] and labels [P], got {tuple(probs.shape)} and {tuple(labels.shape)}"
         )
     keep = labels != ignore_index
-    probs, labels = probs[keep], labels[keep].long()
+    # ignored points stay in place with no error and no class: after every point with an
+    # error in the sorted order, they change no term (and nothing waits for the device)
+    labels = torch.where(keep, labels.long(), 0)
     num_classes = probs.shape[1]
-    fg = (labels.unsqueeze(0) == torch.arange(num_classes, device=labels.device).unsqueeze(1)).to(probs.dtype)
-    errors = (fg - probs.t()).abs()  # [K, P]
+    fg = ((labels.unsqueeze(0) == torch.arange(num_classes, device=labels.device).unsqueeze(1)) & keep).to(probs.dtype)
+    errors = (fg - probs.t()).abs() * keep  # [K, P]
     errors_sorted, order = torch.sort(errors, dim=1, descending=True)
     losses = (errors_sorted * _lovasz_grad(fg.gather(1, order))).sum(1)  # [K]
     chosen = _choose_classes(classes, fg, num_classes)
-    if not bool(chosen.any()):
-        return probs.sum() * 0.0
-    return losses[chosen].mean()
+    return (losses * chosen).sum() / chosen.sum().clamp(min=1)  # 0, still attached, if none is chosen
 
 
 def _lovasz_grad(fg_sorted: torch.Tensor) -> torch.Tensor:
@@ -107,12 +107,12 @@ def occupancy_loss(
     flat_logits = logits.reshape(-1, num_classes).float()
     flat_labels = labels.reshape(-1).long()
     keep = flat_labels != ignore_index
-    flat_logits, flat_labels = flat_logits[keep], flat_labels[keep]
-    if flat_labels.numel() == 0:
-        zero = logits.sum() * 0.0
-        return zero, {"ce": zero.detach(), "lovasz": zero.detach()}
+    # the mean over the kept points, as cross_entropy's, without selecting them (no host read)
+    target = torch.where(keep, flat_labels, 0)
     weight = class_weights.to(flat_logits) if class_weights is not None else None
-    ce = F.cross_entropy(flat_logits, flat_labels, weight=weight)
+    terms = F.cross_entropy(flat_logits, target, weight=weight, reduction="none") * keep
+    kept = (weight[target] if weight is not None else torch.ones_like(terms)) * keep
+    ce = terms.sum() / kept.sum().clamp(min=torch.finfo(terms.dtype).tiny)  # 0 with no target
     if lovasz_weight:
         lovasz = lovasz_softmax(flat_logits.softmax(-1), flat_labels, ignore_index=ignore_index)
     else:

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from t3fast.data.classes import FREE, GRID_SHAPE, IGNORE
+from t3fast.host_syncs import reads_host
 
 __all__ = ["near_surface_free", "point_voxels", "sample_changed_points", "sample_query_points", "voxel_points"]
 
@@ -45,24 +46,28 @@ def near_surface_free(occupied: torch.Tensor, free: torch.Tensor, radius: int = 
     return free & (dilated > 0)
 
 
-def _pick(candidates: torch.Tensor, count: int, generator: torch.Generator | None) -> torch.Tensor:
-    """Flat indices of ``count`` candidates (bool ``[V]``) drawn without replacement; fewer if not enough."""
-    idx = candidates.nonzero().squeeze(1)
-    if idx.numel() <= count:
-        return idx
-    perm = torch.randperm(idx.numel(), generator=generator, device=idx.device)[:count]
-    return idx[perm]
-
-
-def _fill_slot(
-    idx: torch.Tensor, values: torch.Tensor, count: int, ignore_index: int
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pad flat indices ``[n <= count]`` to ``count``; padded entries point at voxel 0 with target ``ignore_index``."""
-    pad = count - idx.numel()
-    targets = values[idx]
-    if pad == 0:
-        return idx, targets
-    return torch.cat([idx, idx.new_zeros(pad)]), torch.cat([targets, targets.new_full((pad,), ignore_index)])
+def _pick(candidates: torch.Tensor, count: int, values: torch.Tensor, ignore_index: int,
+          generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``count`` flat indices of candidates (bool ``[V]``) drawn uniformly without replacement,
+    and their ``values``; when fewer candidates are left, the slot is padded with voxel 0 and
+    target ``ignore_index``. On the CPU the candidates are found on the host; elsewhere each
+    voxel draws a random key and the ``count`` largest win (:func:`~t3fast.host_syncs.reads_host`:
+    nothing waits for the device)."""
+    if reads_host(candidates.device):
+        idx = candidates.nonzero().squeeze(1)
+        if idx.numel() > count:
+            idx = idx[torch.randperm(idx.numel(), generator=generator, device=idx.device)[:count]]
+        pad = count - idx.numel()
+        targets = values[idx]
+        return (torch.cat([idx, idx.new_zeros(pad)]),
+                torch.cat([targets, targets.new_full((pad,), ignore_index)]))
+    keys = torch.rand(candidates.shape, generator=generator, device=candidates.device).masked_fill_(~candidates, -1.0)
+    top, idx = keys.topk(min(count, keys.numel()))
+    picked = top >= 0
+    idx, targets = torch.where(picked, idx, 0), torch.where(picked, values[idx], ignore_index)
+    pad = count - idx.numel()  # a grid with fewer voxels than the slot
+    return (torch.cat([idx, idx.new_zeros(pad)]),
+            torch.cat([targets, targets.new_full((pad,), ignore_index)]))
 
 
 def sample_query_points(
@@ -115,7 +120,7 @@ def sample_query_points(
     flat_idx, targets = [], []
     for b in range(labels.shape[0]):
         values = labels[b].reshape(-1).long()
-        picks = [_fill_slot(_pick(m[b].reshape(-1), n, generator), values, n, ignore_index) for m, n in slots]
+        picks = [_pick(m[b].reshape(-1), n, values, ignore_index, generator) for m, n in slots]
         flat_idx.append(torch.cat([p[0] for p in picks]))
         targets.append(torch.cat([p[1] for p in picks]))
     return _flat_points(torch.stack(flat_idx), grid), torch.stack(targets)
@@ -148,8 +153,7 @@ def sample_changed_points(
     changed = (labels != before) & (labels != ignore_index) & (before != ignore_index)
     flat_idx, targets = [], []
     for b in range(labels.shape[0]):
-        idx, target = _fill_slot(_pick(changed[b].reshape(-1), count, generator), labels[b].reshape(-1).long(),
-                                 count, ignore_index)
+        idx, target = _pick(changed[b].reshape(-1), count, labels[b].reshape(-1).long(), ignore_index, generator)
         flat_idx.append(idx)
         targets.append(target)
     if not flat_idx:

@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from t3fast.data.classes import IGNORE
+from t3fast.host_syncs import SyncCounter
 from t3fast.training.losses import class_frequency_weights, lovasz_softmax, occupancy_loss
 
 
@@ -145,3 +146,17 @@ def test_class_frequency_weights() -> None:
     assert (w[1:] > w[:-1]).all()  # rarer classes weigh more
     assert w[0].item() == pytest.approx(1 / math.log(1e9))
     assert w[3].item() == pytest.approx(1 / math.log(2))  # unseen: clamped to 2 voxels
+
+
+def test_the_losses_read_nothing_on_the_host() -> None:
+    """Ignored points are masked, not selected, so a GPU step never waits in its loss; the
+    weighted mean is cross_entropy's over the points kept."""
+    logits, labels = _random_problem(6)
+    weights = torch.tensor([1.0, 3.0, 0.5, 2.0, 1.5], dtype=torch.float64)
+    with SyncCounter() as counter:
+        loss, parts = occupancy_loss(logits, labels, class_weights=weights, lovasz_weight=0.0)
+        lovasz = lovasz_softmax(logits.softmax(-1), labels)
+    assert counter.total == 0, counter.by_caller
+    torch.testing.assert_close(parts["ce"], F.cross_entropy(logits.float(), labels, weight=weights.float(),
+                                                            ignore_index=IGNORE))
+    assert lovasz > 0

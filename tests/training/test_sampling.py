@@ -1,4 +1,5 @@
-"""Query-point sampling: slot contents, coordinates, padding, determinism."""
+"""Query-point sampling: slot contents, coordinates, padding, determinism; each test as a CPU
+run draws (candidates found on the host) and as a GPU run draws (random keys, the largest win)."""
 
 from __future__ import annotations
 
@@ -8,10 +9,20 @@ import pytest
 import torch
 
 from t3fast.data.classes import CAR, FREE, IGNORE, MANMADE, PEDESTRIAN
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.training.sampling import point_voxels, sample_changed_points, sample_query_points, voxel_points
 
 GRID = (12, 10, 6)
 N_OCC, N_NEAR, N_FAR = 40, 30, 20
+
+
+@pytest.fixture(autouse=True, params=["compacted", "sync-free"])
+def draws(request):
+    if request.param == "compacted":
+        yield request.param
+        return
+    with sync_free():
+        yield request.param
 
 
 def _scene() -> torch.Tensor:
@@ -139,3 +150,11 @@ def test_changed_points_are_where_the_frame_changed() -> None:
     assert empty[0].shape == (0, 4, 3) and empty[1].shape == (0, 4)
     with pytest.raises(ValueError, match="must both be"):
         sample_changed_points(labels, before[:, :4], 4)
+
+
+def test_a_gpu_run_draws_without_reading_the_device(draws) -> None:
+    labels = _scene()
+    with SyncCounter() as counter:
+        _sample(labels)
+        sample_changed_points(labels, labels.roll(1, 1), 10, torch.Generator().manual_seed(0))
+    assert (counter.total == 0) == (draws == "sync-free"), counter.by_caller

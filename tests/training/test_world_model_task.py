@@ -16,6 +16,7 @@ from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
@@ -317,3 +318,19 @@ def test_demo_shows_the_ablations_only_when_asked(tmp_path):
         (tmp_path / f"{name}.pt").touch()
     assert checkpoint_paths(tmp_path, ablations=False) == [tmp_path / "wm-small.pt"]
     assert checkpoint_paths(tmp_path) == [tmp_path / "wm-small.pt", tmp_path / "wm-small-bev.pt"]
+
+
+def test_a_stage2_step_reads_nothing_on_the_host_as_a_gpu_runs_it():
+    """Encoding, the rollout, the sampled decoder loss (fixed-size draws, masked Lovasz and
+    cross-entropy) and the backward, as on a GPU (:func:`~t3fast.host_syncs.sync_free`): nothing
+    waits for the device (the optimiser's step counters are CPU tensors, outside)."""
+    torch.manual_seed(0)
+    model = tiny_world_model(RolloutModel).train()
+    occ = shifting_sequence()
+    past, future = torch.zeros(1, 4, 2), torch.ones(1, 6, 2)
+    cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10)
+    with sync_free(), SyncCounter() as counter:
+        loss, _ = rollout_loss(model, model.encode_sequence(occ), occ, past, future, 2, 1, cfg)
+        loss.backward()
+    assert counter.total == 0, counter.by_caller
+    assert torch.isfinite(loss) and loss > 0

@@ -159,7 +159,7 @@ def scene_targets(boxes: list[Tensor], box_valid: list[Tensor], velocity: Tensor
     valid = torch.stack([F.pad(v, [0, agents - v.shape[1]]) for v in box_valid])
     boxes = torch.stack([F.pad(b, [0, 0, 0, agents - b.shape[1]]) for b in boxes])
     target, moving, static, _, covered, owner = agent_motion(boxes, valid, tuple(velocity.shape[-2:]))
-    t = agent_targets(target, moving, static, covered, owner, velocity)
+    t = agent_targets(target, moving, static, covered, owner, velocity, agents)
     return {"velocity": velocity, "cells": t.cells.short(), "visible": _pad_agents(t.visible, agents),
             "motion": _pad_agents(t.motion, agents)}
 

@@ -73,14 +73,14 @@ class AgentTargets:
 
 
 def agent_targets(target: Tensor, moving: Tensor, static: Tensor, covered: Tensor, owner: Tensor,
-                  velocity: Tensor) -> AgentTargets:
-    """:class:`AgentTargets` from the per-cell targets and masks of
-    :func:`~t3fast.training.world_model.motion_targets.agent_motion` and the tracker's
-    ``velocity`` ``[B, 4, H, W]`` (tracked cells: where it is not 0)."""
+                  velocity: Tensor, agents: int) -> AgentTargets:
+    """:class:`AgentTargets` of ``agents`` boxes (``owner`` < ``agents``) from the per-cell
+    targets and masks of :func:`~t3fast.training.world_model.motion_targets.agent_motion` and the
+    tracker's ``velocity`` ``[B, 4, H, W]`` (tracked cells: where it is not 0); a box that owns no
+    cell is not visible."""
     tracked = (velocity != 0).any(1)  # [B, H, W]
     cells = torch.where(tracked, owner, -1)
     seen = (moving | (static & covered[:, None])) & tracked[:, None]  # whose target is known
-    agents = int(owner.max()) + 1 if owner.numel() else 0
     motion, count = agent_means(target, cells, seen, agents)
     return AgentTargets(cells, count > 0, motion)
 
@@ -129,7 +129,8 @@ def motion_loss(model: nn.Module, batch: AlignedBatch, loss: WorldLossConfig, mi
     weight = 1.0 + loss.agent_weight * agents.float()
     latent = latent_error(pred, target, weight, loss.gamma)
     flow_moving, flow_parked = flow_terms(
-        displacements, agent_targets(target_disp, moving, static, covered, owner, batch.velocity), min_flow)
+        displacements, agent_targets(target_disp, moving, static, covered, owner, batch.velocity,
+                                     batch.boxes.shape[2]), min_flow)
     elsewhere = static & ~covered[:, None] & ~(batch.velocity != 0).any(1, keepdim=True)
     flow_static = (displacements.abs().sum(2) * elsewhere).sum() / elsewhere.sum().clamp(min=1)
     flow_term = flow_moving + flow_parked + loss.static_flow_weight * flow_static

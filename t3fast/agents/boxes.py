@@ -60,15 +60,15 @@ DRAW_REACH = 26
 
 @dataclass
 class AgentBoxes:
-    """Fitted boxes of one frame's agents (per component of :func:`frame_agents`, ``n`` of them),
-    in the present frame, metres: ``centre`` ``[n, 2]``, ``velocity`` ``[n, 2]`` per step (the present one),
-    ``yaw`` ``[n]``, ``length``, ``width`` ``[n]``; ``bottom``, ``top`` ``[n]`` the levels the
-    agent's voxels span (top exclusive); ``label`` ``[n]`` its class; ``drawn`` ``[n]`` bool:
-    the fit is trusted and the agent is drawn as this box; ``track`` ``[n, T, 2]`` the agent's
-    column centroid in each observed frame (present frame, metres; NaN where it was not found);
-    ``future`` ``[S, n, 3]`` where a learned motion (:mod:`t3fast.models.box_motion`) placed each
-    box at every future step (centre, yaw; present frame), None to move them by their fitted
-    velocity."""
+    """Fitted boxes of one frame's agents (per slot of :func:`frame_agents`, ``n`` of them; an
+    empty slot is never drawn), in the present frame, metres: ``centre`` ``[n, 2]``,
+    ``velocity`` ``[n, 2]`` per step (the present one), ``yaw`` ``[n]``, ``length``, ``width``
+    ``[n]``; ``bottom``, ``top`` ``[n]`` the levels the agent's voxels span (top exclusive);
+    ``label`` ``[n]`` its class; ``drawn`` ``[n]`` bool: the fit is trusted and the agent is
+    drawn as this box; ``track`` ``[n, T, 2]`` the agent's column centroid in each observed frame
+    (present frame, metres; NaN where it was not found); ``future`` ``[S, n, 3]`` where a learned
+    motion (:mod:`t3fast.models.box_motion`) placed each box at every future step (centre, yaw;
+    present frame), None to move them by their fitted velocity."""
 
     centre: Tensor
     velocity: Tensor

@@ -9,6 +9,7 @@
 #pragma once
 
 #include <cmath>
+#include <cstdint>
 
 #if defined(__CUDACC__)
 #define T3FAST_HOST_DEVICE __host__ __device__ __forceinline__
@@ -26,6 +27,31 @@ constexpr double kBeta1 = 0.9, kBeta2 = 0.999, kEps = 1e-8;  // Adam's defaults
 struct alignas(16) Sample {
   float x, y, time, owned;
 };
+
+// Whether the component map frame [x, y] holds id within near columns (along each axis) of
+// column (r, c): a column near the agent, which the fit samples.
+T3FAST_HOST_DEVICE bool owns_near(const int64_t* frame, int64_t id, int64_t r, int64_t c,
+                                  int64_t x, int64_t y, int64_t near) {
+  for (int64_t rr = r - near > 0 ? r - near : 0; rr <= (r + near < x - 1 ? r + near : x - 1); ++rr) {
+    for (int64_t cc = c - near > 0 ? c - near : 0; cc <= (c + near < y - 1 ? c + near : y - 1); ++cc) {
+      if (frame[rr * y + cc] == id) return true;
+    }
+  }
+  return false;
+}
+
+// The sample of column (r, c) of a frame whose planar pose in the present frame is (px, py) with
+// heading cosine and sine (cs, sn): the column's centre (lower + voxel * (index + 0.5)) in the
+// present frame relative to the agent's starting centre, its time and ownership.
+T3FAST_HOST_DEVICE Sample sample_at(int64_t r, int64_t c, double px, double py, double cs,
+                                    double sn, double lower_x, double lower_y, double voxel,
+                                    const double* start, float time, bool owned) {
+  const double lx = lower_x + (static_cast<double>(r) + 0.5) * voxel;
+  const double ly = lower_y + (static_cast<double>(c) + 0.5) * voxel;
+  const double x = px + cs * lx - sn * ly, y = py + sn * lx + cs * ly;
+  return {static_cast<float>(x - start[0]), static_cast<float>(y - start[1]), time,
+          owned ? 1.0f : 0.0f};
+}
 
 // What every sample of one box reads: the cosine and sine of its yaw, half its length and width.
 struct Shape {

@@ -201,6 +201,13 @@ inline void check_bev_mask(const at::Tensor& mask, const char* op) {
 
 // draw_boxes: volume uint8 [B, X, Y, Z], boxes float64 [B, M, 6], levels int64 [M, 2], labels
 // uint8 [M], all on one device; reach >= 0 columns.
+// The columns of a label grid in metres: lower x, y of the grid and metres per column.
+inline void check_grid_frame(c10::ArrayRef<double> lower, double voxel_size, const char* op) {
+  T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
+               lower.size(), " values");
+  T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
+}
+
 inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
                              const at::Tensor& levels, const at::Tensor& labels,
                              c10::ArrayRef<double> lower, double voxel_size, int64_t reach,
@@ -225,9 +232,7 @@ inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
   check_same_device(boxes, volume, op, "boxes", "volume");
   check_same_device(levels, volume, op, "levels", "volume");
   check_same_device(labels, volume, op, "labels", "volume");
-  T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
-               lower.size(), " values");
-  T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
+  check_grid_frame(lower, voxel_size, op);
   T3FAST_CHECK(reach >= 0, op, "reach must be at least 0, got ", reach);
 }
 
@@ -267,9 +272,7 @@ inline void check_box_fit(const at::Tensor& ids, const at::Tensor& track, const 
     check_same_device(f.t, ids, op, f.name, "ids");
   }
   check_same_device(track, ids, op, "track", "ids");
-  T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
-               lower.size(), " values");
-  T3FAST_CHECK(voxel_size > 0, op, "voxel_size must be positive, got ", voxel_size);
+  check_grid_frame(lower, voxel_size, op);
   T3FAST_CHECK(window >= 0 && window <= 1024, op, "window must be in [0, 1024] cells, got ",
                window);
   T3FAST_CHECK(near >= 0 && near <= 16, op, "near must be in [0, 16] cells, got ", near);

@@ -28,16 +28,6 @@ struct Grid {
   int64_t near;
 };
 
-// Whether frame [X, Y] has the value id within near columns (along each axis) of (r, c).
-bool owns_near(const int64_t* frame, int64_t id, int64_t r, int64_t c, const Grid& g) {
-  for (int64_t rr = std::max<int64_t>(r - g.near, 0); rr <= std::min(r + g.near, g.X - 1); ++rr) {
-    for (int64_t cc = std::max<int64_t>(c - g.near, 0); cc <= std::min(c + g.near, g.Y - 1); ++cc) {
-      if (frame[rr * g.Y + cc] == id) return true;
-    }
-  }
-  return false;
-}
-
 // One agent's samples (see t3fast.ops.reference.box_fit_samples): ids [T, X, Y], track [T],
 // centroid [T, 2], poses [T, 3], start [7].
 std::vector<Sample> collect(const int64_t* ids, const int64_t* track, const double* centroid,
@@ -62,13 +52,9 @@ std::vector<Sample> collect(const int64_t* ids, const int64_t* track, const doub
         const int64_t col = c0 + dc;
         if (col < 0 || col >= g.Y) continue;
         if (std::sqrt(static_cast<double>(dr * dr + dc * dc)) > reach) continue;
-        if (!owns_near(frame, index + 1, r, col, g)) continue;
-        const double lx = g.lower_x + (static_cast<double>(r) + 0.5) * g.voxel;
-        const double ly = g.lower_y + (static_cast<double>(col) + 0.5) * g.voxel;
-        const double x = pose[0] + c * lx - s * ly, y = pose[1] + s * lx + c * ly;
-        const bool owned = frame[r * g.Y + col] == index + 1;
-        out.push_back({static_cast<float>(x - start[0]), static_cast<float>(y - start[1]), time,
-                       owned ? 1.0f : 0.0f});
+        if (!box_fit::owns_near(frame, index + 1, r, col, g.X, g.Y, g.near)) continue;
+        out.push_back(box_fit::sample_at(r, col, pose[0], pose[1], c, s, g.lower_x, g.lower_y,
+                                         g.voxel, start, time, frame[r * g.Y + col] == index + 1));
       }
     }
   }

@@ -25,15 +25,6 @@ constexpr int kWarps = kThreads / 32;
 
 __device__ bool fitted(double reach) { return reach > 0.0; }  // false for NaN
 
-__device__ bool owns_near(const int64_t* frame, int64_t id, int r, int c, const BoxFitArgs& a) {
-  for (int rr = max(r - a.near, 0); rr <= min(r + a.near, a.x - 1); ++rr) {
-    for (int cc = max(c - a.near, 0); cc <= min(c + a.near, a.y - 1); ++cc) {
-      if (frame[static_cast<int64_t>(rr) * a.y + cc] == id) return true;
-    }
-  }
-  return false;
-}
-
 // Sum of v over the block into thread 0 (others get garbage), in a fixed order.
 template <int N>
 __device__ void block_sum(float (&v)[N], float (*scratch)[N]) {
@@ -82,14 +73,11 @@ __global__ void sample_kernel(BoxFitArgs a, float* samples, int* sampled) {
     const int r = r0 + dr, col = c0 + dc;
     Sample q{0.0f, 0.0f, 0.0f, -1.0f};
     if (any && r >= 0 && r < a.x && col >= 0 && col < a.y &&
-        sqrt(static_cast<double>(dr * dr + dc * dc)) <= reach && owns_near(frame, index + 1, r, col, a)) {
-      const double lx = a.lower_x + (static_cast<double>(r) + 0.5) * a.voxel;
-      const double ly = a.lower_y + (static_cast<double>(col) + 0.5) * a.voxel;
-      const double c = cos(pose[2]), s = sin(pose[2]);
-      const double x = pose[0] + c * lx - s * ly, y = pose[1] + s * lx + c * ly;
-      const bool owned = frame[static_cast<int64_t>(r) * a.y + col] == index + 1;
-      q = {static_cast<float>(x - start[0]), static_cast<float>(y - start[1]),
-           static_cast<float>(t - (a.frames - 1)), owned ? 1.0f : 0.0f};
+        sqrt(static_cast<double>(dr * dr + dc * dc)) <= reach &&
+        box_fit::owns_near(frame, index + 1, r, col, a.x, a.y, a.near)) {
+      q = box_fit::sample_at(r, col, pose[0], pose[1], cos(pose[2]), sin(pose[2]), a.lower_x,
+                             a.lower_y, a.voxel, start, static_cast<float>(t - (a.frames - 1)),
+                             frame[static_cast<int64_t>(r) * a.y + col] == index + 1);
       found[0] += 1.0f;
     }
     out[i] = q;

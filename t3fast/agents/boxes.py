@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from t3fast import ops
-from t3fast.agents.tracker import agent_levels, cell_metres, follow_agents, frame_agents
+from t3fast.agents.tracker import agent_levels, cell_metres, follow_agents, frame_agents, slot_values
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, VOXEL_SIZE
 
 MIN_FIT_IOU = 0.5  # footprint IoU over the agent's frames under which it is not drawn as a box
@@ -113,7 +113,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
     found = _centroids(agents, match)
     # each column's offset from its agent's centroid (columns off the agents gather in slot n)
     owner = now["column_slot"]
-    offset = now["columns"].double() - torch.cat([now["centroid"], now["centroid"].new_zeros(1, 2)])[owner]
+    offset = now["columns"].double() - slot_values(now["centroid"], owner)
     spread = _per_slot_max(offset.norm(dim=-1), owner, n)
     # start: the present centroid, the last step's velocity, the principal axis and extents
     centre = cell_metres(now["centroid"], poses[-1])
@@ -123,7 +123,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
     spread_m = offset * VOXEL_SIZE
     cov = poses.new_zeros(n + 1, 2, 2).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])[:n]
     axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64, device=cov.device))[1][..., 1]
-    column_axis = torch.cat([axis, axis.new_zeros(1, 2)])[owner]
+    column_axis = slot_values(axis, owner)
     along = (spread_m * column_axis).sum(-1).abs()
     across = (spread_m[:, 1] * column_axis[:, 0] - spread_m[:, 0] * column_axis[:, 1]).abs()
     length = _per_slot_max(along, owner, n) * 2 + VOXEL_SIZE
@@ -148,8 +148,6 @@ def _per_slot_max(values: Tensor, owner: Tensor, slots: int) -> Tensor:
     """The largest of per-column ``values`` ``[N]`` over each slot's columns (``owner``, the
     ``column_slot`` of :func:`~t3fast.agents.tracker.frame_agents`; at least 0): ``[slots]``."""
     return values.new_zeros(slots + 1).scatter_reduce_(0, owner, values, "amax", include_self=True)[:slots]
-
-
 
 
 def _centroids(agents: list[dict[str, Tensor]], match: Tensor) -> Tensor:

@@ -113,6 +113,12 @@ def column_slots(ids: Tensor, slots: int) -> Tensor:
     return torch.where(ids > 0, ids - 1, slots).flatten()
 
 
+def slot_values(values: Tensor, column_slot: Tensor) -> Tensor:
+    """Per column, its slot's row of ``values`` ``[n, ...]``, and zeros for the columns off the
+    agents (slot n, :func:`column_slots`)."""
+    return torch.cat([values, values.new_zeros(1, *values.shape[1:])])[column_slot]
+
+
 def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Tensor:
     """Per slot, its voxels of each class ``[slots, NUM_CLASSES]`` int64: on the CPU from the
     agents' voxels (found on the host: a few percent of the frame), elsewhere from every voxel
@@ -136,9 +142,14 @@ def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], ga
     if n == 0 or previous["cls"].shape[0] == 0:
         return torch.full((n,), -1, dtype=torch.long, device=present["cls"].device)
     dist = (present["centroid"][:, None] - previous["centroid"][None]).norm(dim=-1)
-    other = (present["cls"][:, None] != previous["cls"][None]) | ~previous["valid"][None]
-    nearest, match = dist.masked_fill(other, math.inf).min(1)
+    nearest, match = dist.masked_fill(_unmatchable(present["cls"], previous), math.inf).min(1)
     return torch.where(nearest <= gate_cells, match, torch.full_like(match, -1))
+
+
+def _unmatchable(cls: Tensor, candidates: dict[str, Tensor]) -> Tensor:
+    """``[n, m]``: which of the ``candidates``' slots (:func:`frame_agents`) an agent of class
+    ``cls`` ``[n]`` can never be: those of another class, and the empty ones."""
+    return (cls[:, None] != candidates["cls"][None]) | ~candidates["valid"][None]
 
 
 def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
@@ -175,10 +186,11 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     frames = frame.masked_fill(agents["mask"], free).expand(steps, nx, ny, nz).clone()
     if agents["cls"].shape[0] == 0:
         return frames
-    paste = agents["mask"] if keep is None else agents["mask"] & keep[(agents["ids"] - 1).clamp(min=0)][..., None]
+    slot = (agents["ids"] - 1).clamp(min=0)  # [X, Y]: each column's slot (0 off the agents, masked)
+    paste = agents["mask"] if keep is None else agents["mask"] & keep[slot][..., None]
     if reads_host(frame.device):
         ijz = paste.nonzero()
-        moved = ijz[None, :, :2] + shift[:, agents["ids"][ijz[:, 0], ijz[:, 1]] - 1]  # [S, V, 2]
+        moved = ijz[None, :, :2] + shift[:, slot[ijz[:, 0], ijz[:, 1]]]  # [S, V, 2]
         inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
         step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
         z = ijz[None, :, 2].expand_as(inside)
@@ -187,7 +199,7 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
         return frames
     # every voxel at once: each target voxel takes the label of the last source voxel landing on it
     voxels = nx * ny * nz
-    d = shift[:, (agents["ids"] - 1).clamp(min=0)]  # [S, X, Y, 2]
+    d = shift[:, slot]  # [S, X, Y, 2]
     i = torch.arange(nx, device=frame.device)[:, None] + d[..., 0]
     j = torch.arange(ny, device=frame.device)[None, :] + d[..., 1]
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [S, X, Y]
@@ -245,8 +257,7 @@ def _pooled_field(shape: tuple[int, int], agents: list[tuple[Tensor, Tensor]], p
     columns = torch.zeros(len(agents), c + 1, nx, ny, dtype=torch.float32, device=device)
     for n, (ids, values) in enumerate(agents):
         columns[n, -1] = (ids > 0).float()
-        with_none = torch.cat([values, values.new_zeros(1, c)])  # the last: off the agents
-        columns[n, :c] = with_none[column_slots(ids, values.shape[0])].T.reshape(c, nx, ny).float()
+        columns[n, :c] = slot_values(values, column_slots(ids, values.shape[0])).T.reshape(c, nx, ny).float()
     pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
     count, agent = pooled[:, -1:], pooled[:, -1:] > 0
     field = pooled[:, :-1] / count.clamp(min=1e-6)  # 0 where no agent column
@@ -345,8 +356,7 @@ def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
             break
         found = cell_metres(before["centroid"], poses[t])
         dist = (position - velocity)[:, None].sub(found[None]).norm(dim=-1)
-        other = (now["cls"][:, None] != before["cls"][None]) | ~before["valid"][None]
-        nearest, index = dist.masked_fill(other, math.inf).min(1)
+        nearest, index = dist.masked_fill(_unmatchable(now["cls"], before), math.inf).min(1)
         ok = alive & (nearest <= gate)
         match[:, t] = torch.where(ok, index, match[:, t])
         velocity = torch.where(ok[:, None], position - found[index], velocity)

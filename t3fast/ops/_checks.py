@@ -221,6 +221,12 @@ def check_bev_components(mask: torch.Tensor) -> None:
     _require(mask.dtype == torch.bool, op, f"mask must be bool, got {_dtype_name(mask.dtype)}")
 
 
+def _check_grid_frame(lower: Sequence[float], voxel_size: float, op: str) -> None:
+    """The columns of a label grid in metres: its lower x, y and metres per column."""
+    _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
+    _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
+
+
 def check_draw_boxes(volume: torch.Tensor, boxes: torch.Tensor, levels: torch.Tensor, labels: torch.Tensor,
                      lower: Sequence[float], voxel_size: float, reach: int) -> None:
     """draw_boxes' arguments, as csrc/checks.h checks them."""
@@ -240,8 +246,7 @@ def check_draw_boxes(volume: torch.Tensor, boxes: torch.Tensor, levels: torch.Te
     _check_size(labels, op, "labels", 0, boxes.shape[1], "boxes, as boxes.shape[1]")
     for name, t in (("boxes", boxes), ("levels", levels), ("labels", labels)):
         _check_device(t, volume, op, name, "volume")
-    _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
-    _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
+    _check_grid_frame(lower, voxel_size, op)
     _require(reach >= 0, op, f"reach must be at least 0, got {reach}")
 
 
@@ -265,8 +270,7 @@ def check_box_fit(ids, track, centroid, poses, start, reach, lower, voxel_size, 
                  f"{list(track.shape)}), got {list(t.shape)}")
         _check_device(t, ids, op, name, "ids")
     _check_device(track, ids, op, "track", "ids")
-    _require(len(lower) == 2, op, f"lower must hold the grid's lower x and y, got {len(lower)} values")
-    _require(voxel_size > 0, op, f"voxel_size must be positive, got {voxel_size}")
+    _check_grid_frame(lower, voxel_size, op)
     _require(0 <= window <= 1024, op, f"window must be in [0, 1024] cells, got {window}")
     _require(0 <= near <= 16, op, f"near must be in [0, 16] cells, got {near}")
     _require(iters >= 0, op, f"iters must be at least 0, got {iters}")

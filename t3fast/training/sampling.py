@@ -57,17 +57,14 @@ def _pick(candidates: torch.Tensor, count: int, values: torch.Tensor, ignore_ind
         idx = candidates.nonzero().squeeze(1)
         if idx.numel() > count:
             idx = idx[torch.randperm(idx.numel(), generator=generator, device=idx.device)[:count]]
-        pad = count - idx.numel()
         targets = values[idx]
-        return (torch.cat([idx, idx.new_zeros(pad)]),
-                torch.cat([targets, targets.new_full((pad,), ignore_index)]))
-    keys = torch.rand(candidates.shape, generator=generator, device=candidates.device).masked_fill_(~candidates, -1.0)
-    top, idx = keys.topk(min(count, keys.numel()))
-    picked = top >= 0
-    idx, targets = torch.where(picked, idx, 0), torch.where(picked, values[idx], ignore_index)
-    pad = count - idx.numel()  # a grid with fewer voxels than the slot
-    return (torch.cat([idx, idx.new_zeros(pad)]),
-            torch.cat([targets, targets.new_full((pad,), ignore_index)]))
+    else:
+        keys = torch.rand(candidates.shape, generator=generator, device=candidates.device)
+        top, idx = keys.masked_fill_(~candidates, -1.0).topk(min(count, keys.numel()))
+        picked = top >= 0
+        idx, targets = torch.where(picked, idx, 0), torch.where(picked, values[idx], ignore_index)
+    pad = count - idx.numel()  # too few candidates (or voxels)
+    return torch.cat([idx, idx.new_zeros(pad)]), torch.cat([targets, targets.new_full((pad,), ignore_index)])
 
 
 def sample_query_points(

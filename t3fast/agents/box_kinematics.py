@@ -122,7 +122,7 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     fitted velocity (metres per step, present frame). The ego is a vehicle too (the agents behind
     it follow it), though the labels leave it out: its footprint at the origin is drawn into the
     vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
-    groups = [in_classes(present, torch.tensor(g, device=present.device)).any(-1) for g in CONTEXT_GROUPS]
+    groups = [in_classes(present, g).any(-1) for g in CONTEXT_GROUPS]
     ids = agent_ids.to(present.device)
     # row 0: off the agents; row 1 + i: agent i's velocity
     per_agent = torch.cat([boxes.velocity.new_zeros(1, 2), boxes.velocity]).float().to(ids.device)

@@ -101,8 +101,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
         raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
                          f"{list(frames.shape)} and {list(poses.shape)}")
     poses = poses.to(frames.device, torch.float64)
-    wanted = frames.new_tensor(AGENT_CLASSES)
-    agents = [frame_agents(f, wanted, slots) for f in frames]
+    agents = [frame_agents(f, AGENT_CLASSES, slots) for f in frames]
     now = agents[-1]
     n = now["cls"].shape[0]
     empty = poses.new_zeros(n)

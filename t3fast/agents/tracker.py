@@ -23,6 +23,7 @@ read on the host, the per-agent sums over their columns alone); on a GPU (or und
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -51,7 +52,7 @@ def agent_slots(device: torch.device) -> int | None:
     return None if reads_host(device) else AGENT_SLOTS
 
 
-def frame_agents(frame: Tensor, classes: Tensor, slots: int | None = None) -> dict[str, Tensor]:
+def frame_agents(frame: Tensor, classes: Tensor | Sequence[int], slots: int | None = None) -> dict[str, Tensor]:
     """The agents of a frame ``[X, Y, Z]``: the connected BEV components of the columns holding an
     agent voxel (``classes``), in ``n`` slots: the frame's count (read on the host) with
     ``slots`` None, else ``slots`` (components beyond them are not agents; :func:`agent_slots`).
@@ -288,12 +289,11 @@ def agent_velocity_field(
     if previous.shape != present.shape:
         raise ValueError(f"agent_velocity_field: previous {list(previous.shape)} and present "
                          f"{list(present.shape)} differ in shape")
-    wanted = torch.tensor(classes, dtype=present.dtype, device=present.device)
     slots = agent_slots(present.device)
     agents = []
     for n in range(present.shape[0]):
-        now = frame_agents(present[n], wanted, slots)
-        agents.append((now["ids"], agent_velocities(now, frame_agents(previous[n], wanted, slots), gate / VOXEL_SIZE)))
+        now = frame_agents(present[n], classes, slots)
+        agents.append((now["ids"], agent_velocities(now, frame_agents(previous[n], classes, slots), gate / VOXEL_SIZE)))
     return _pooled_field(tuple(present.shape[1:3]), agents, plane_shape, 2, present.device)
 
 
@@ -306,12 +306,11 @@ def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float
     pooled as :func:`agent_velocity_field`."""
     if frames.dim() != 5 or frames.shape[1] != 3:
         raise ValueError(f"tracker_velocities: frames must be [B, 3, X, Y, Z], got {list(frames.shape)}")
-    wanted = torch.tensor(AGENT_CLASSES, dtype=frames.dtype, device=frames.device)
     gate_cells = gate / VOXEL_SIZE
     slots = agent_slots(frames.device)
     agents = []
     for n in range(frames.shape[0]):
-        older, previous, now = (frame_agents(frames[n, t], wanted, slots) for t in range(3))
+        older, previous, now = (frame_agents(frames[n, t], AGENT_CLASSES, slots) for t in range(3))
         velocity = torch.cat([agent_velocities(now, previous, gate_cells),
                               chained_velocities(now, previous, older, gate_cells)], dim=1)
         agents.append((now["ids"], velocity))

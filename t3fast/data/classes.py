@@ -15,6 +15,7 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -146,11 +147,20 @@ def box_footprint(x: float, y: float, length: float, width: float, yaw: float, s
 def in_classes(labels: Tensor, classes: Tensor | Sequence[int]) -> Tensor:
     """``torch.isin(labels, classes)`` for label volumes (ids 0 .. 255): one gather from a
     256-entry table instead of a comparison per class (8x faster on a 200 x 200 x 16 frame).
-    ``classes`` as ints are made on the labels' device (no copy from the host)."""
-    table = torch.zeros(256, dtype=torch.bool, device=labels.device)
+    For ``classes`` as ints the table is made once per device (on a GPU, making it from host data
+    at every call would be a copy that waits for the device)."""
     if isinstance(classes, Tensor):
-        classes = classes.to(device=labels.device, dtype=torch.long)
-    else:
-        classes = torch.tensor(classes, dtype=torch.long, device=labels.device)
-    table[classes] = True
+        table = torch.zeros(256, dtype=torch.bool, device=labels.device)
+        table[classes.to(device=labels.device, dtype=torch.long)] = True
+    else:  # a compiled graph holds the table as a constant: no cache there
+        make = _class_table.__wrapped__ if torch.compiler.is_compiling() else _class_table
+        table = make(tuple(classes), labels.device)
     return table.take(labels.long())
+
+
+@functools.lru_cache(maxsize=64)
+def _class_table(classes: tuple[int, ...], device: torch.device) -> Tensor:
+    """The lookup table of :func:`in_classes`: bool ``[256]``, True at ``classes``."""
+    table = torch.zeros(256, dtype=torch.bool, device=device)
+    table[list(classes)] = True
+    return table

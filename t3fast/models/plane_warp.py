@@ -47,7 +47,8 @@ def splat_plane(values: Tensor, displacement: Tensor) -> Tensor:
     base = base.long()
     # the four corners (di, dj) = (0, 0), (0, 1), (1, 0), (1, 1) at once, corner after corner
     # along the last dim, so that the sums run in the order of one scatter per corner
-    di, dj = (torch.tensor(d, device=values.device) for d in ((0, 0, 1, 1), (0, 1, 0, 1)))
+    corner = torch.arange(4, device=values.device)  # no host data: on a GPU that would be a copy that waits
+    di, dj = corner // 2, corner % 2
     i, j = base[..., :1] + di, base[..., 1:] + dj  # [B, H, W, 4]
     f_i, f_j = frac[..., :1], frac[..., 1:]
     weight = torch.where(di > 0, f_i, 1 - f_i) * torch.where(dj > 0, f_j, 1 - f_j)

@@ -1,6 +1,7 @@
 """Where code waits on its data: the ops whose result the host must read (a scalar read,
 ``nonzero``, ``unique``, a boolean mask: data-dependent shapes). On a GPU each one is a host
-synchronisation, and a step captured as one CUDA graph (or compiled whole) can hold none.
+synchronisation, and a step captured as one CUDA graph (or compiled whole) can hold none; nor
+can it hold a copy of host data to the device, which waits too.
 
 :class:`SyncCounter` counts them on any device (a CPU run counts what a GPU run would wait on),
 by op and by the t3fast function that ran them::
@@ -51,13 +52,18 @@ SYNCING = frozenset({"_local_scalar_dense", "equal", "nonzero", "unique", "_uniq
 class SyncCounter(TorchDispatchMode):
     """Counts the syncing ops (:data:`SYNCING`, and indexing with a boolean mask) run under it:
     ``by_op`` (op name) and ``by_caller`` (``"module/path.py:function"`` of the innermost t3fast
-    frame that ran it); and ``dispatched``, every op run (views included): an upper bound of the
-    kernels a GPU run launches, each costing microseconds of the host's time."""
+    frame that ran it); ``host_data`` by caller (or ``"(outside t3fast)"``), the tensors made from host data
+    (``torch.tensor``, ``new_tensor``; seen on the CPU) and the copies of a CPU tensor to
+    another device (seen with the inputs on "meta"), each a copy that waits on a GPU, leaving
+    out the constants made once per device (:mod:`t3fast.device_constants`); and
+    ``dispatched``, every op run (views included): an upper bound of the kernels a GPU run
+    launches, each costing microseconds of the host's time."""
 
     def __init__(self) -> None:
         super().__init__()
         self.by_op: Counter[str] = Counter()
         self.by_caller: Counter[str] = Counter()
+        self.host_data: Counter[str] = Counter()
         self.dispatched = 0
 
     @property
@@ -72,9 +78,28 @@ class SyncCounter(TorchDispatchMode):
         boolean_index = any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in indices or [])
         if name in SYNCING or boolean_index:
             self.by_op["index (bool mask)" if boolean_index else name] += 1
-            frames = [f for f in traceback.extract_stack() if "/t3fast/" in f.filename
-                      and not f.filename.endswith("host_syncs.py")]
-            if frames:
-                f = frames[-1]
-                self.by_caller[f"{f.filename.rsplit('/t3fast/', 1)[1]}:{f.name}"] += 1
-        return func(*args, **(kwargs or {}))
+            self._count(self.by_caller, traceback.extract_stack())
+        out = func(*args, **(kwargs or {}))
+        source = args[1] if name == "copy_" else args[0] if name == "_to_copy" else None
+        if name == "lift_fresh" or _to_device(source, out):
+            stack = traceback.extract_stack()
+            if not any(f.filename.endswith("device_constants.py") for f in stack):
+                self._count(self.host_data, stack, outside="(outside t3fast)")
+        return out
+
+    @staticmethod
+    def _count(counter: Counter[str], stack: traceback.StackSummary, outside: str | None = None) -> None:
+        """Count one op for the innermost t3fast frame of ``stack`` that ran it (for ``outside``
+        where none did, if given)."""
+        frames = [f for f in stack if "/t3fast/" in f.filename and not f.filename.endswith("host_syncs.py")]
+        if frames:
+            f = frames[-1]
+            counter[f"{f.filename.rsplit('/t3fast/', 1)[1]}:{f.name}"] += 1
+        elif outside is not None:
+            counter[outside] += 1
+
+
+def _to_device(source: object, out: object) -> bool:
+    """Whether a copy from ``source`` to ``out`` goes from the host to another device."""
+    return (isinstance(source, torch.Tensor) and isinstance(out, torch.Tensor) and source.device.type == "cpu"
+            and out.device.type != "cpu")

@@ -5,11 +5,13 @@ without host reads (:func:`~t3fast.host_syncs.sync_free`, as on a GPU) in its in
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.device_constants import device_constant
 from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.pretrained import load_world_model
 
@@ -39,6 +41,20 @@ def test_counts_what_the_host_must_read():
     assert counter.total == 5
     assert counter.dispatched >= 12  # every op, the views and the ones that wait included
     assert set(counter.by_caller) == set()  # none of them ran in t3fast
+    assert counter.host_data == {"(outside t3fast)": 2}  # the value 0.0 written and the index [0, 2]
+
+
+def test_counts_tensors_made_from_host_data_but_not_the_constants_made_once_per_device():
+    on_meta = torch.zeros(2, device="meta")
+    with SyncCounter() as counter:
+        torch.tensor([1.0, 2.0])
+        on_meta.new_tensor([1.0, 2.0], device="cpu")
+        torch.from_numpy(np.ones(3)).to("meta")  # made from host data, then copied to another device
+        torch.ones(3).to("meta")
+        torch.zeros(3, device="meta") + on_meta[0]  # no host data
+        device_constant((1.0, 2.0), torch.float32, "meta")
+        device_constant((1.0, 2.0), torch.float32, "meta")
+    assert counter.host_data == {"(outside t3fast)": 5}
 
 
 @pytest.fixture(scope="module")
@@ -69,8 +85,21 @@ def test_without_host_reads_the_forecast_waits_only_once_for_its_input_checks():
     with sync_free(), SyncCounter() as counter:
         free = model.forecast(*args)
     assert dict(counter.by_caller) == {"models/forecast_inputs.py:read_together": 1}
+    assert not counter.host_data, f"tensors made from host data (a copy that waits on a GPU): {counter.host_data}"
     compacted = model.forecast(*args)
     assert torch.equal(free.labels, compacted.labels) and torch.equal(free.poses, compacted.poses)
+
+
+def test_on_the_meta_device_the_forecast_reads_nothing_and_copies_nothing_from_the_host():
+    """Model and inputs on "meta" (shapes without values) stand in for a GPU: an op that reads a
+    value fails there, and a copy of a CPU tensor to the device shows."""
+    model = load_world_model("wm-small", device="meta")
+    sample = SyntheticDriving("val", 1, 20, stride=9)[0]
+    args = sample.occ[None, : PRESENT + 1].to("meta"), sample.ego_poses[None, : PRESENT + 1].to("meta")
+    with SyncCounter() as counter:
+        out = model.forecast(*args)
+    assert out.labels.device.type == "meta" and out.labels.shape == (1, 6, 200, 200, 16)
+    assert counter.total == 0 and not counter.host_data, (counter.by_caller, counter.host_data)
 
 
 def test_the_shipped_forecast_runs_no_more_ops_than_before(forecast_syncs):

@@ -26,7 +26,8 @@ def main() -> None:
     counter = SyncCounter()
     with counter:
         model.forecast(occ, poses)
-    print(f"{args.model}: {counter.total} syncing ops in one forecast, {counter.dispatched} ops dispatched")
+    print(f"{args.model}: {counter.total} syncing ops in one forecast, {counter.dispatched} ops dispatched, "
+          f"{sum(counter.host_data.values())} tensors made from host data")
     for name, count in counter.by_op.most_common():
         print(f"  {count:6d}  {name}")
     print("by caller:")

@@ -46,6 +46,7 @@ from t3fast.data.classes import (
     box_footprint,
     in_classes,
 )
+from t3fast.device_constants import device_constant, made_once
 
 #: BEV groups of the context map: a column belongs to every group one of its voxels is in
 CONTEXT_GROUPS: tuple[tuple[int, ...], ...] = (
@@ -105,7 +106,8 @@ def kinematics(boxes: AgentBoxes, heading: Tensor) -> Tensor:
     departure = rotate(torch.nan_to_num(track[:, :-1] - expected), -heading[:, None].expand(-1, frames - 1))
     departure = departure * seen[:, :-1, None]
     velocity = rotate(boxes.velocity, -heading)
-    classes = (boxes.label[:, None] == boxes.label.new_tensor(BOX_CLASSES)).to(track.dtype)
+    label = boxes.label
+    classes = (label[:, None] == device_constant(BOX_CLASSES, label.dtype, label.device)).to(track.dtype)
     return torch.cat([velocity, boxes.velocity.norm(dim=-1, keepdim=True), departure.flatten(1),
                       seen[:, :-1].to(track.dtype), classes, boxes.length[:, None], boxes.width[:, None]], 1).float()
 
@@ -127,14 +129,23 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     # row 0: off the agents; row 1 + i: agent i's velocity
     per_agent = torch.cat([boxes.velocity.new_zeros(1, 2), boxes.velocity]).float().to(ids.device)
     velocity = per_agent[ids].permute(2, 0, 1).contiguous()
-    footprint = box_footprint(0.0, 0.0, EGO_LENGTH, EGO_WIDTH, 0.0, tuple(ids.shape))
+    footprint = _ego_footprint(tuple(ids.shape), ids.device)
     if footprint is not None:
-        rows, cols, inside = footprint
-        ego = torch.from_numpy(inside).to(ids.device)
+        rows, cols, ego = footprint
         groups[VEHICLES][rows, cols] |= ego
         ego_motion = ego_velocity.to(ids.device, torch.float32).view(2, 1, 1)
         velocity[:, rows, cols] = torch.where(ego, ego_motion, velocity[:, rows, cols])
     return torch.cat([torch.stack(groups).float(), velocity])
+
+
+@made_once
+def _ego_footprint(shape: tuple[int, int], device: torch.device) -> tuple[slice, slice, Tensor] | None:
+    """:func:`~t3fast.data.classes.box_footprint` of the ego at the origin, its mask on ``device``."""
+    footprint = box_footprint(0.0, 0.0, EGO_LENGTH, EGO_WIDTH, 0.0, shape)
+    if footprint is None:
+        return None
+    rows, cols, inside = footprint
+    return rows, cols, torch.from_numpy(inside).to(device)
 
 
 def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
@@ -149,9 +160,9 @@ def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
     local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1)  # [A, W, 2]
     h = heading.float().to(context.device)[:, None, None].expand(-1, *CROP)
     points = rotate(local.expand(n, -1, -1, -1), h) + centre.float().to(context.device)[:, None, None]
-    size = torch.tensor(context.shape[-2:], dtype=torch.float32, device=context.device)
-    cells = (points - points.new_tensor(GRID_LOWER[:2])) / VOXEL_SIZE - 0.5
-    grid = (cells / (size - 1) * 2 - 1).flip(-1)  # grid_sample's x indexes the last dim (Y)
+    last = device_constant([s - 1 for s in context.shape[-2:]], torch.float32, context.device)
+    cells = (points - device_constant(GRID_LOWER[:2], torch.float32, context.device)) / VOXEL_SIZE - 0.5
+    grid = (cells / last * 2 - 1).flip(-1)  # grid_sample's x indexes the last dim (Y)
     views = F.grid_sample(context.expand(n, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
                           align_corners=True)
     v = rotate(views[:, -2:].permute(0, 2, 3, 1), -h).permute(0, 3, 1, 2)
@@ -167,10 +178,9 @@ def mirror_views(views: Tensor) -> Tensor:
 def mirror_kinematics(features: Tensor) -> Tensor:
     """:func:`kinematics` of the left-right mirrored agents (their lateral components negated)."""
     frames = (features.shape[1] - kinematic_features(1)) // 3 + 1
-    sign = torch.ones(features.shape[1], device=features.device)
-    sign[1] = -1
-    sign[4 : 3 + 2 * (frames - 1) : 2] = -1
-    return features * sign
+    lateral = {1, *range(4, 3 + 2 * (frames - 1), 2)}
+    sign = [-1.0 if i in lateral else 1.0 for i in range(features.shape[1])]
+    return features * device_constant(sign, features.dtype, features.device)
 
 
 def corrected_motion(velocity: Tensor, heading: Tensor, correction: Tensor) -> tuple[Tensor, Tensor]:

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from t3fast import ops
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, in_classes
+from t3fast.device_constants import device_constant
 from t3fast.host_syncs import reads_host
 from t3fast.models.ego_motion import compose
 
@@ -227,7 +228,7 @@ def component_shifts(agents: dict[str, Tensor], displacement: Tensor) -> Tensor:
     per_column = displacement[:, :, columns[:, 0] // fx, columns[:, 1] // fy].double()  # [S, 2, N]
     total = per_column.new_zeros(displacement.shape[0], 2, n + 1).index_add_(2, slot, per_column)[..., :n]
     count = per_column.new_zeros(n + 1).index_add_(0, slot, torch.ones_like(per_column[0, 0]))[:n].clamp(min=1)
-    scale = total.new_tensor([fx, fy]).view(1, 2, 1)
+    scale = device_constant((fx, fy), total.dtype, total.device).view(1, 2, 1)
     return (total / count * scale).transpose(1, 2)
 
 
@@ -265,7 +266,7 @@ def _pooled_field(shape: tuple[int, int], agents: list[tuple[Tensor, Tensor]], p
     ring = F.avg_pool2d(torch.cat([field, agent.float()], 1), 3, stride=1, padding=1, count_include_pad=False)
     grown = ring[:, :-1] / ring[:, -1:].clamp(min=1e-6)  # 0 where no agent is near
     field = torch.where(agent, field, grown)
-    return field / torch.tensor([fx, fy] * (c // 2), device=field.device, dtype=field.dtype).view(1, -1, 1, 1)
+    return field / device_constant([fx, fy] * (c // 2), field.dtype, field.device).view(1, -1, 1, 1)
 
 
 def agent_velocity_field(
@@ -329,7 +330,7 @@ def blended_velocity(velocity: Tensor) -> Tensor:
 def cell_metres(cells: Tensor, pose: Tensor) -> Tensor:
     """Continuous cell coordinates ``[..., 2]`` of a frame with planar ``pose`` (in the present
     frame) -> metres in the present frame."""
-    lower = cells.new_tensor(GRID_LOWER[:2])
+    lower = device_constant(GRID_LOWER[:2], cells.dtype, cells.device)
     local = lower + (cells + 0.5) * VOXEL_SIZE
     return compose(pose.expand(*local.shape[:-1], 3), torch.cat([local, torch.zeros_like(local[..., :1])], -1))[..., :2]
 

@@ -15,12 +15,13 @@ Conventions
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from t3fast.device_constants import made_once
 
 CLASS_NAMES: tuple[str, ...] = (
     "others",
@@ -152,13 +153,12 @@ def in_classes(labels: Tensor, classes: Tensor | Sequence[int]) -> Tensor:
     if isinstance(classes, Tensor):
         table = torch.zeros(256, dtype=torch.bool, device=labels.device)
         table[classes.to(device=labels.device, dtype=torch.long)] = True
-    else:  # a compiled graph holds the table as a constant: no cache there
-        make = _class_table.__wrapped__ if torch.compiler.is_compiling() else _class_table
-        table = make(tuple(classes), labels.device)
+    else:
+        table = _class_table(tuple(classes), labels.device)
     return table.take(labels.long())
 
 
-@functools.lru_cache(maxsize=64)
+@made_once
 def _class_table(classes: tuple[int, ...], device: torch.device) -> Tensor:
     """The lookup table of :func:`in_classes`: bool ``[256]``, True at ``classes``."""
     table = torch.zeros(256, dtype=torch.bool, device=device)

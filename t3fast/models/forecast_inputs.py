@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from t3fast.data.classes import IGNORE
 from t3fast.data.route import COMMANDS
+from t3fast.device_constants import device_constant
 from t3fast.errors import UsageError
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
 from t3fast.models.planner import MotionPlanner
@@ -45,8 +46,8 @@ _STEP_LIMIT = f"at most {MAX_STEP_METRES:g} m per frame ({MAX_STEP_METRES * 7.2:
 
 def can_read_values(values: Tensor) -> bool:
     """Whether a check may read ``values`` back: not while ``torch.compile`` traces a graph or
-    a CUDA graph is being captured."""
-    if torch.compiler.is_compiling():
+    a CUDA graph is being captured, nor from the meta device (shapes without values)."""
+    if torch.compiler.is_compiling() or values.device.type == "meta":
         return False
     return not (values.is_cuda and torch.cuda.is_current_stream_capturing())
 
@@ -234,7 +235,7 @@ def check_rigid(name: str, poses: Tensor) -> None:
     eye = torch.eye(3, dtype=m.dtype, device=m.device)
     off = (rotation.transpose(-1, -2) @ rotation - eye).abs().amax((-2, -1))
     off = torch.maximum(off, (torch.linalg.det(rotation) - 1).abs())
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
+    last = device_constant((0.0, 0.0, 0.0, 1.0), m.dtype, m.device)
     off = torch.maximum(off, (m[..., 3, :] - last).abs().amax(-1))
 
     def fail() -> None:

@@ -39,6 +39,8 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
         assert (out / path).is_file(), path
     bench = json.loads((out / "ops" / "benchmarks.json").read_text())
     assert all({"flops", "bytes"} <= set(b["extra_info"]) for b in bench["benchmarks"])
+    profiled = json.loads((out / "forecast" / "profile" / "tiny-eager-b1.json").read_text())
+    assert profiled["ops"] > 100 and profiled["top"][0]["ms"] > 0  # on a CPU: the ops, by self time
     ae = json.loads((out / "train_ae" / "result.json").read_text())
     assert ae["world_size"] == 2 and ae["ddp"] and ae["samples_per_s"] > 0
 

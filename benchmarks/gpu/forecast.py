@@ -17,7 +17,10 @@ Each row: median and 90th-percentile time of one call, FPS (windows forecast per
 batch / median), in eager modes the host synchronisations of one call
 (:class:`~t3fast.host_syncs.SyncCounter`), and the peak memory of the mode
 (``torch.cuda.max_memory_allocated`` / ``max_memory_reserved`` since
-the model was built: weights, inputs, activations and graph pools).
+the model was built: weights, inputs, activations and graph pools). With ``--profile DIR``,
+one more call runs under ``torch.profiler``: ``DIR/<size>-<mode>-b<batch>.json`` holds its
+kernels launched, the GPU's busy time and the kernels that took it (on a CPU, the ops), so a
+row says where its time goes.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from pathlib import Path
 import torch
 
 MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
+TOP = 30  # kernels (ops) listed per profile
 
 
 def sizes() -> dict:
@@ -133,7 +137,39 @@ def measure(fn, device: torch.device, warmup: int, min_iters: int, max_iters: in
     return times
 
 
-def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int = 1) -> dict:
+def profile_call(fn, device: torch.device) -> dict:
+    """One call of ``fn`` under ``torch.profiler``: its wall time; on a GPU the kernels it ran
+    (count, summed busy time, the ``TOP`` that took longest, by name), on a CPU its ops (by self
+    time)."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    sync(device)
+    with profile(activities=activities) as prof:
+        start = time.perf_counter()
+        fn()
+        sync(device)
+        wall = time.perf_counter() - start
+    out: dict = {"wall_ms": wall * 1e3}
+    if device.type == "cuda":
+        by_name: dict[str, list[float]] = {}
+        for event in prof.events():
+            if event.device_type == DeviceType.CUDA:
+                by_name.setdefault(event.name, []).append(event.time_range.elapsed_us() / 1e3)
+        times = [(name, len(t), sum(t)) for name, t in by_name.items()]
+        out["kernels"] = sum(n for _, n, _ in times)
+        out["gpu_busy_ms"] = sum(ms for _, _, ms in times)
+    else:
+        times = [(e.key, e.count, e.self_cpu_time_total / 1e3) for e in prof.key_averages()]
+        out["ops"] = sum(n for _, n, _ in times)
+    times.sort(key=lambda t: -t[2])
+    out["top"] = [{"name": name[:160], "count": n, "ms": round(ms, 4)} for name, n, ms in times[:TOP]]
+    return out
+
+
+def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int = 1,
+            profile_dir: Path | None = None) -> dict:
     row: dict = {"size": size, "mode": mode, "device": str(device), "batch": batch}
     if device.type == "cuda":
         torch.cuda.empty_cache()
@@ -155,6 +191,12 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int 
             with SyncCounter() as counter:
                 fn()
             row["host_syncs"] = counter.total
+            row["host_data"] = sum(counter.host_data.values())
+        if profile_dir is not None:
+            profiled = profile_call(fn, device)
+            profile_dir.mkdir(parents=True, exist_ok=True)
+            (profile_dir / f"{size}-{mode}-b{batch}.json").write_text(json.dumps(profiled, indent=1) + "\n")
+            row.update({k: profiled[k] for k in ("kernels", "gpu_busy_ms") if k in profiled})
         counting = time.perf_counter() - counting
     row["setup_s"] = time.perf_counter() - start - sum(times) - counting  # capture / compilation and warm-up
     row["iters"] = len(times)
@@ -179,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, from {MODES}")
     parser.add_argument("--quick", action="store_true", help="two timed steps per row")
     parser.add_argument("--out", type=Path, required=True, help="JSON lines file (appended to)")
+    parser.add_argument("--profile", type=Path, help="folder for one profiled call per row")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     if device.type == "cuda":
@@ -192,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     for mode in modes:  # every size of a mode before the next (slower to set up) mode
         for size in sizes:
             try:
-                row = run_row(size, mode, device, args.quick, args.batch)
+                row = run_row(size, mode, device, args.quick, args.batch, args.profile)
                 print(f"{size:>7} {mode:<16} x{args.batch:<3} {row['median_ms']:9.2f} ms {row['fps']:8.1f} FPS"
                       + (f" {row['peak_allocated_mb']:8.0f} MB" if "peak_allocated_mb" in row else ""), flush=True)
             except Exception as exc:

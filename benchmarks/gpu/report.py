@@ -155,12 +155,15 @@ def forecast_section(out: Path) -> list[str]:
         body.append([r["size"], r["mode"], str(r.get("batch", 1)), _fmt(r["median_ms"], ".2f"),
                      _fmt(r["p90_ms"], ".2f"), _fmt(r["fps"], ".1f"),
                      _fmt(r.get("peak_allocated_mb"), ".0f"), _fmt(r.get("peak_reserved_mb"), ".0f"),
-                     f"{r['params_m']:.2f} M params, set-up {r['setup_s']:.1f} s, {r['iters']} steps timed"])
+                     f"{r['params_m']:.2f} M params, set-up {r['setup_s']:.1f} s, {r['iters']} steps timed"
+                     + (f", {r['kernels']} kernels, GPU busy {r['gpu_busy_ms']:.2f} ms" if "kernels" in r else "")
+                     + (f", {r['host_syncs']} host syncs" if "host_syncs" in r else "")])
     header = ["size", "mode", "batch", "median (ms)", "p90 (ms)", "FPS", "peak allocated (MB)", "peak reserved (MB)",
               "notes"]
     return _table(header, body, {2, 3, 4, 5, 6, 7}) + [
         "", "The whole `model.forecast(past labels, past poses)` of a validation window: encoding the 5 past frames, "
-            "the agents, the forecaster, the planner, the 6 frames rendered to labels; FPS = windows per second."]
+            "the agents, the forecaster, the planner, the 6 frames rendered to labels; FPS = windows per second. "
+            "Kernels and GPU busy time: one more call under torch.profiler (the kernels that took it: `profile/`)."]
 
 
 def training_section(out: Path) -> list[str]:

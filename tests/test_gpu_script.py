@@ -138,3 +138,23 @@ def test_the_demo_is_held_against_the_cpu_runs_metrics(tmp_path, monkeypatch):
     ok, detail = gpu_run._check_demo(ctx, tmp_path)
     assert not ok and "0.100 (copy_paste; allowed 0.05)" in detail
 
+
+
+def test_the_report_says_where_a_profiled_training_step_s_time_goes(tmp_path):
+    import torch
+
+    from t3fast.training.step_profile import SKIP, StepProfile
+
+    run = tmp_path / "train_wm" / "run"
+    run.mkdir(parents=True)
+    profile = StepProfile(run / "profile.json", 2, torch.device("cpu"))
+    weight = torch.randn(64, 64, requires_grad=True)
+    for _ in range(SKIP + 2):
+        profile.step_begin()
+        with profile.phase("forward"):
+            loss = (torch.randn(32, 64) @ weight).square().mean()
+        with profile.phase("backward"):
+            loss.backward()
+        profile.step_done()
+    lines = gpu_report.profile_lines(tmp_path)
+    assert len(lines) == 3 and lines[2].startswith("- train_wm: ") and "forward" in lines[2] and "backward" in lines[2]

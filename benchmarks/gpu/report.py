@@ -182,7 +182,24 @@ def training_section(out: Path) -> list[str]:
                      _fmt(r.get("samples_per_s"), ".2f"), _fmt(r.get("peak_allocated_mb"), ".0f")])
     header = ["command", "processes", "backend", "AMP", "batch / process", "steps", "samples/s", "peak MB (rank 0)"]
     return _table(header, body, {4, 5, 6, 7}) + [
-        "", "samples/s: median over the logged windows after the first (warm-up), all processes together."]
+        "", "samples/s: median over the logged windows after the first (warm-up), all processes together."
+    ] + profile_lines(out)
+
+
+def profile_lines(out: Path) -> list[str]:
+    """One line per burst that profiled its steps (``train.profile_steps``): where a step's time goes."""
+    lines = []
+    for stage in ("train_ae", "train_wm"):
+        p = _read_json(out / stage / "run" / "profile.json")
+        if p is None:
+            continue
+        phases = ", ".join(f"{name} {v['host_ms_per_step']:.1f} ms host / {v['device_ms_per_step']:.1f} ms device"
+                           for name, v in p["phases"].items())
+        gpu = (f", {p['kernels_per_step']:.0f} kernels and the GPU busy {p['gpu_busy_ms_per_step']:.1f} ms"
+               if "kernels_per_step" in p else "")
+        top = ", ".join(f"{t['name'][:40]} {t['ms_per_step']:.1f} ms" for t in p["top"][:3])
+        lines.append(f"- {stage}: {p['wall_ms_per_step']:.1f} ms a step ({phases}){gpu}; most time: {top}.")
+    return ["", "Where a step's time goes (rank 0, profiled steps; `run/profile.json`):", *lines] if lines else []
 
 
 def tests_section(out: Path) -> list[str]:

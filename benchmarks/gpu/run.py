@@ -210,7 +210,7 @@ def _train_overrides(ctx: Context, d: Path) -> list[str]:
     if ctx.quick:
         return common + ["train.log_every=1", "train.batch_size=1", "loss.num_occupied=2000",
                          "loss.num_near_free=1000", "loss.num_far_free=500"]
-    return common + ["train.log_every=5"]
+    return common + ["train.log_every=5", "train.profile_steps=3"]  # run/profile.json: where a step's time goes
 
 
 def _torchrun(ctx: Context, d: Path, nproc: int, seconds: float, command: list[str]) -> Step:

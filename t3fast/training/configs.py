@@ -68,12 +68,13 @@ class TrainConfig:
     resume_from: str | None = None  # continue from this checkpoint (must exist)
     overwrite: bool = False  # replace the run already in out_dir (a new run needs an empty out_dir)
     device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu"
+    profile_steps: int = 0  # profile this many steps (after two) into out_dir/profile.json; 0: none
 
     def __post_init__(self) -> None:
         """Reject counts and rates that would crash, do nothing or train backwards (e.g. a zero
         batch, a negative gradient clip, a final learning rate above the peak)."""
         _at_least("train.", self, {"steps": 1, "batch_size": 1, "warmup_steps": 0, "log_every": 0,
-                                   "eval_every": 0, "ckpt_every": 0, "num_workers": 0})
+                                   "eval_every": 0, "ckpt_every": 0, "num_workers": 0, "profile_steps": 0})
         if not (math.isfinite(self.lr) and self.lr > 0):
             raise ConfigError(f"train.lr must be a number > 0, got {self.lr}")
         if not (math.isfinite(self.min_lr) and 0 <= self.min_lr <= self.lr):

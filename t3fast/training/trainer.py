@@ -13,9 +13,11 @@ process group, wraps the model in DistributedDataParallel, and shards every glob
 Files in ``out_dir`` (written by rank 0): ``last.pt`` (every ``ckpt_every`` steps, at the end,
 and on Ctrl-C), ``best.pt`` (whenever the evaluation score improves), ``metrics.jsonl`` (one
 ``{"event", "step", "time", "values"}`` object per log or evaluation), ``tb/`` (TensorBoard,
-when installed). A new run needs an empty ``out_dir``; ``resume`` continues the run there and
-``overwrite`` replaces it, keeping the old files until the new run has set up, trained a step
-and written a checkpoint, and putting them back if it fails before (:mod:`t3fast.training.run_dir`).
+when installed), ``profile.json`` (with ``profile_steps``: where a step's time goes,
+:mod:`t3fast.training.step_profile`). A new run needs an empty ``out_dir``; ``resume``
+continues the run there and ``overwrite`` replaces it, keeping the old files until the new run
+has set up, trained a step and written a checkpoint, and putting them back if it fails before
+(:mod:`t3fast.training.run_dir`).
 
 Finite numbers only: a step whose loss is not finite, or after which a weight is not, stops the
 run with a :class:`~t3fast.errors.DivergenceError` naming the step and the loss term or weight,
@@ -66,6 +68,7 @@ from t3fast.training.param_groups import param_groups
 from t3fast.training.random_state import derive_seed, preserved_rng, rng_state, seed_everything, set_rng_state
 from t3fast.training.run_dir import check_out_dir, drop_replaced, restore, set_aside
 from t3fast.training.schedule import warmup_cosine
+from t3fast.training.step_profile import StepProfile
 from t3fast.training.task import Task
 
 log = logging.getLogger(__name__)
@@ -127,6 +130,7 @@ class Trainer:
         self._last_eval_step = self._last_ckpt_step = -1
         self._reset_window()
         self._log = MetricsLog(self.out_dir, is_main(), cfg.tensorboard)
+        self._profile = StepProfile(self.out_dir / "profile.json", cfg.profile_steps if is_main() else 0, self.device)
         self._maybe_resume()
         # overwrite: the old run moves aside only now that the new one is set up (a missing data
         # file, a bad init_from or a model too large leaves it untouched); see _save and fit
@@ -164,7 +168,11 @@ class Trainer:
                     self._evaluate()  # best.pt starts as the untrained model: training must beat it
                 self.model.train()
                 while self.step < self.cfg.steps:
-                    self._train_step(next(batches))
+                    self._profile.step_begin()
+                    with self._profile.phase("data"):
+                        batch = next(batches)
+                    self._train_step(batch)
+                    self._profile.step_done()
                     self._periodic()
                     if any_rank(self._stop.requested):  # all ranks stop at the same step
                         self.interrupted = True
@@ -174,14 +182,28 @@ class Trainer:
                     self._finish()
         finally:
             batches.close()
+            self._profile.close()
             self._log.close()
 
     def _train_step(self, batch: Any) -> None:
-        batch = _to_device(batch, self.device)
+        with self._profile.phase("data"):
+            batch = _to_device(batch, self.device)
         self.optimizer.zero_grad(set_to_none=True)
-        with torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None):
+        with self._profile.phase("forward"), torch.autocast(self.device.type, dtype=self.amp_dtype,
+                                                             enabled=self.amp_dtype is not None):
             loss, values = self.task.training_step(self.model, batch)
-        self.scaler.scale(loss).backward()
+        with self._profile.phase("backward"):
+            self.scaler.scale(loss).backward()
+        with self._profile.phase("optimizer"):
+            logs = self._update(loss, values)
+        for k, v in logs.items():
+            self._sums[k] += v
+        self._count += 1
+        self._samples += self.task.samples_in(batch)
+        self._log.advance()
+
+    def _update(self, loss: Tensor, values: dict[str, Tensor]) -> dict[str, float]:
+        """Read the step's values and check them, clip, step the optimiser; the values read."""
         terms = {"loss": loss.detach(), **values}
         if self.cfg.grad_clip:  # None or 0: no clipping
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
@@ -195,12 +217,7 @@ class Trainer:
         self.scheduler.step()
         self.step += 1
         self._check_weights(logs["loss"])
-
-        for k, v in logs.items():
-            self._sums[k] += v
-        self._count += 1
-        self._samples += self.task.samples_in(batch)
-        self._log.advance()
+        return logs
 
     def _check_loss(self, logs: dict[str, float]) -> None:
         """Stop, on every rank at once, at the first step whose loss is not finite, naming the terms."""

@@ -23,7 +23,7 @@ from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
 from t3fast.training.world_model.latent_cache import AlignedWindow, collate_aligned
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
-from t3fast.training.world_model.windows import collate_windows, ego_aligned_window, rollout_frames
+from t3fast.training.world_model.windows import collate_windows, ego_aligned_window, moved_window, rollout_frames
 
 
 @pytest.mark.parametrize("impl", ["fused", "reference"])
@@ -48,11 +48,12 @@ def test_stage1_training_step(benchmark, impl):
     benchmark.extra_info["samples_per_s"] = 2 / benchmark.stats.stats.median
 
 
-@pytest.mark.parametrize("encode", ["rollout frames", "all frames"])
+@pytest.mark.parametrize("encode", ["rollout frames", "all frames", "cached planes"])
 def test_stage2_training_step(benchmark, encode):
     """One stage-2 step of the ``small`` preset (ego-aligned window, one-step rollout from
     future step 3 with pushforward, backward, AdamW): encoding only the frames the rollout
-    reads (the trainer's way) versus all 11 frames of the window."""
+    reads versus all 11 frames of the window, versus the planes read from the aligned cache
+    (``data.cache_labels``: encoded once, stored in float16; the labels moved in the step)."""
     benchmark.group = "stage-2 training step (small, batch 1)"
     torch.manual_seed(0)
     world = dataclasses.replace(world_model_size("small"), ego_aligned=True)
@@ -62,9 +63,13 @@ def test_stage2_training_step(benchmark, encode):
     loss_cfg = WorldLossConfig(rollout_steps=1)
     first = 3
     frames = rollout_frames(first, 1, loss_cfg.pushforward) if encode == "rollout frames" else None
+    cached = ego_aligned_window(model, batch.occ, batch.ego_poses)[0].map(lambda p: p.half().float())
 
     def step():
-        planes, occ = ego_aligned_window(model, batch.occ, batch.ego_poses, frames)
+        if encode == "cached planes":
+            planes, occ = cached, moved_window(batch.occ, batch.ego_poses)
+        else:
+            planes, occ = ego_aligned_window(model, batch.occ, batch.ego_poses, frames)
         loss, _ = rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, 1, loss_cfg)
         optimizer.zero_grad()
         loss.backward()

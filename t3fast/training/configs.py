@@ -152,6 +152,11 @@ class SequencesConfig:
     # cache_dir (built, with a progress bar, before the first step); the flow forecaster needs it
     latent_cache: bool = False
     latent_flips: bool = True  # each cached training batch randomly mirrored / transposed (8 ways)
+    # with latent_cache, the Delta forecaster on the whole stage-2 loss (its decoded predictions'
+    # occupancy term too): each window's labels come with its cached planes and are moved into
+    # its present frame in the step; the encoder leaves the step, the loss stays the labels
+    # path's (no latent_flips there)
+    cache_labels: bool = False
     occ3d_root: str = ""
     occ3d_train_info: str = ""
     occ3d_val_info: str = ""

@@ -15,6 +15,7 @@ from t3fast.commands.main import main
 from t3fast.data.export import export_synthetic
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.errors import ConfigError
 from t3fast.evaluation.world_model import SharedRollout, evaluate_forecasts, evaluate_many, t3former_method
 from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
@@ -334,3 +335,50 @@ def test_a_stage2_step_reads_nothing_on_the_host_as_a_gpu_runs_it():
         loss.backward()
     assert counter.total == 0, counter.by_caller
     assert torch.isfinite(loss) and loss > 0
+
+
+def test_cached_planes_with_their_labels_give_the_labels_path_loss(world_ckpt, tmp_path):
+    """``data.cache_labels``: the Delta forecaster's step reads each window's planes from the
+    aligned cache and moves its labels in the step: the loss of the labels path, occupancy term
+    included, on the planes the step would encode (stored in float16), without the encoder."""
+    cfg = preset("wm-small-delta")
+    cfg.autoencoder_ckpt = str(world_ckpt.parent.parent / "ae" / "last.pt")
+    cfg.model = replace(cfg.model, forecaster_widths=(8, 8, 8), scales=3, max_tokens=64, planner_widths=(8, 8, 8, 8),
+                        d_act=20)
+    cfg.data = replace(cfg.data, train_scenes=1, frames_per_scene=12, stride=1, cache_dir=str(tmp_path),
+                       cache_labels=True)
+    cfg.loss = replace(cfg.loss, num_occupied=500, num_near_free=200, num_far_free=100, num_changed=100)
+    task = WorldModelTask(cfg)
+    model = task.build_model()
+    data = task.train_dataset()
+    batch = task.collate([data[0], data[1]])
+    assert isinstance(batch, SequenceBatch) and batch.planes.xy.shape[:2] == (2, 11)
+    encoded, moved = ego_aligned_window(model, batch.occ, batch.ego_poses)
+    for cached, fresh in zip(batch.planes, encoded):
+        torch.testing.assert_close(cached, fresh, atol=2e-3, rtol=1e-3)  # float16 storage
+
+    def step(planes):
+        torch.manual_seed(0)
+        return task.training_step(model, replace(batch, planes=planes))
+
+    calls = []
+    hook = model.encoder.register_forward_hook(lambda *_: calls.append(1))
+    loss, parts = step(batch.planes)
+    assert not calls  # no encoder in the step
+    expected_loss, expected = step(None)
+    hook.remove()
+    assert calls
+    assert parts["occupancy"] > 0 and set(parts) == set(expected) == {"triplane", "occupancy", "action"}
+    for name in parts:
+        assert float(parts[name]) == pytest.approx(float(expected[name]), rel=1e-2, abs=1e-4), name
+    loss.backward()
+    assert all(p.grad is not None for p in model.forecaster.parameters() if p.requires_grad)
+
+
+def test_cache_labels_needs_the_cached_windows_of_a_delta_forecaster(world_ckpt):
+    for changes in ({"latent_cache": False}, {}):
+        cfg = preset("wm-small" if not changes else "wm-small-delta")
+        cfg.autoencoder_ckpt = str(world_ckpt.parent.parent / "ae" / "last.pt")
+        cfg.data = replace(cfg.data, cache_labels=True, **changes)
+        with pytest.raises(ConfigError, match="data.cache_labels"):
+            WorldModelTask(cfg)

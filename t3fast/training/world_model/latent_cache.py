@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from t3fast.agents.tracker import tracker_velocities
 from t3fast.data.classes import FREE, IGNORE
-from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT, WINDOW
+from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT, WINDOW, DrivingSample
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import DataFormatError
 from t3fast.models.triplane import Triplane
@@ -149,6 +149,22 @@ class AlignedLatentCache(Dataset):
         planes = planes_from(state).map(lambda p: p.float())
         return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"],
                              state["velocity"])
+
+
+class LabelledAlignedWindows(Dataset):
+    """The windows of a built :class:`AlignedLatentCache` with their labels and poses, for the
+    labels path of stage 2 (:func:`~t3fast.training.world_model.windows.collate_windows`):
+    ``(DrivingSample, planes [11, C, H, W])`` pairs, the planes :func:`ego_aligned_window`
+    gives those labels (stored in float16)."""
+
+    def __init__(self, cache: AlignedLatentCache):
+        self.cache = cache
+
+    def __len__(self) -> int:
+        return len(self.cache)
+
+    def __getitem__(self, index: int) -> tuple[DrivingSample, Triplane]:
+        return self.cache.windows[index], self.cache[index].planes
 
 
 @dataclass

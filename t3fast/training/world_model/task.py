@@ -23,7 +23,13 @@ from t3fast.training.distributed import barrier, is_main
 from t3fast.training.triplane_cache import cached_scene_triplanes
 from t3fast.training.world_model.delta_loss import delta_rollout_loss
 from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
-from t3fast.training.world_model.latent_cache import AlignedBatch, AlignedLatentCache, AlignedWindow, collate_aligned
+from t3fast.training.world_model.latent_cache import (
+    AlignedBatch,
+    AlignedLatentCache,
+    AlignedWindow,
+    LabelledAlignedWindows,
+    collate_aligned,
+)
 from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
@@ -33,6 +39,7 @@ from t3fast.training.world_model.windows import (
     SequenceBatch,
     collate_windows,
     ego_aligned_window,
+    moved_window,
     rollout_frames,
 )
 
@@ -70,6 +77,11 @@ class WorldModelTask:
         if self.cfg.model.forecaster == "flow" and not (self.cfg.data.latent_cache and self.cfg.model.ego_aligned):
             raise ConfigError("model.forecaster=flow trains on cached ego-aligned windows: set data.latent_cache=true "
                               "and model.ego_aligned=true")
+        if self.cfg.data.cache_labels and not (self.cfg.data.latent_cache and self.cfg.model.ego_aligned
+                                               and self.cfg.model.forecaster != "flow"):
+            raise ConfigError("data.cache_labels reads the labels beside the planes of cached ego-aligned windows for "
+                              "the Delta forecaster: set data.latent_cache=true and model.ego_aligned=true (the flow "
+                              "forecaster trains on its own loss)")
         self._val = None
         self._encoder = self._model = None
 
@@ -94,7 +106,7 @@ class WorldModelTask:
                 if is_main():
                     cache.build()
                 barrier()
-                return cache
+                return LabelledAlignedWindows(cache) if data.cache_labels else cache
             if self.cfg.model.ego_aligned:  # moved into each window's present frame, encoded in the step
                 return windows
             planes = cached_scene_triplanes(self._encoder, windows.scenes, data.cache_dir)
@@ -126,7 +138,9 @@ class WorldModelTask:
         steps = self.cfg.loss.rollout_steps
         first = self._rollout_start()
         occ = batch.occ
-        if core.ego_aligned:
+        if core.ego_aligned and batch.planes is not None:  # encoded once (the encoder is frozen): read
+            planes, occ = batch.planes, moved_window(batch.occ, batch.ego_poses)
+        elif core.ego_aligned:
             frames = rollout_frames(first, steps, self.cfg.loss.pushforward)
             planes, occ = ego_aligned_window(core, batch.occ, batch.ego_poses, frames)
         else:

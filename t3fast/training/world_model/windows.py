@@ -70,6 +70,12 @@ def collate_windows(items: list) -> SequenceBatch:
 
 
 @torch.no_grad()
+def moved_window(occ: Tensor, ego_poses: Tensor) -> Tensor:
+    """The frames of windows ``occ`` ``[B, 11, X, Y, Z]`` (poses ``[B, 11, 4, 4]``) moved into
+    the present ego frame, ``IGNORE`` where a frame did not see that part of the present grid."""
+    return warp_sequence(occ, planar_poses(ego_poses, PRESENT), fill=IGNORE)
+
+
 def ego_aligned_window(
     model: T3Former, occ: Tensor, ego_poses: Tensor, frames: Sequence[int] | None = None
 ) -> tuple[Triplane, Tensor]:
@@ -84,8 +90,7 @@ def ego_aligned_window(
     ``frames``: encode only these (a rollout reads a few; encoding is half a step's cost), the
     planes of the others stay zero.
     """
-    poses = planar_poses(ego_poses, PRESENT)
-    moved = warp_sequence(occ, poses, fill=IGNORE)
+    moved = moved_window(occ, ego_poses)
     unseen = moved == IGNORE
     history = moved[:, : PRESENT + 1].masked_fill(unseen[:, : PRESENT + 1], FREE)
     future = torch.where(unseen[:, PRESENT + 1 :], occ[:, PRESENT : PRESENT + 1], moved[:, PRESENT + 1 :])

@@ -24,6 +24,12 @@ from t3fast.presets import preset
 from t3fast.pretrained import export_weights, load_world_model
 from t3fast.training.configs import WorldLossConfig
 from t3fast.training.world_model.forwards import RolloutModel
+from t3fast.training.world_model.latent_cache import (
+    LabelledAlignedWindows,
+    ResidentAlignedWindows,
+    fits_on,
+    resident_bytes,
+)
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.task import WorldModelTask
 from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window, rollout_frames
@@ -382,3 +388,31 @@ def test_cache_labels_needs_the_cached_windows_of_a_delta_forecaster(world_ckpt)
         cfg.data = replace(cfg.data, cache_labels=True, **changes)
         with pytest.raises(ConfigError, match="data.cache_labels"):
             WorldModelTask(cfg)
+
+
+def test_cached_windows_held_in_device_memory_give_the_batches_read_from_disk(world_ckpt, tmp_path):
+    """On a GPU where they fit, the labelled windows live in its memory and a batch is gathered
+    there: the same batch as the loader's from the cache files (here with the CPU standing in)."""
+    cfg = preset("wm-small-delta")
+    cfg.autoencoder_ckpt = str(world_ckpt.parent.parent / "ae" / "last.pt")
+    cfg.data = replace(cfg.data, train_scenes=2, frames_per_scene=13, stride=1, cache_dir=str(tmp_path),
+                       cache_labels=True)
+    task = WorldModelTask(cfg)
+    task.build_model()
+    labelled = task.train_dataset()
+    assert isinstance(labelled, LabelledAlignedWindows)  # the CPU reads them from disk
+    assert not fits_on(torch.device("cpu"), 1)
+    resident = ResidentAlignedWindows(labelled, torch.device("cpu"), progress=False)
+    assert len(resident) == len(labelled) == 6
+    held = sum(t.numel() * t.element_size() for t in (resident.occ, resident.poses, resident.past_actions,
+                                                      resident.future_actions, *resident.planes))
+    assert abs(resident_bytes(labelled) - held) <= 0.01 * held
+    order = [5, 0, 3]
+    got = task.collate(resident.__getitems__(order))
+    want = task.collate([labelled[i] for i in order])
+    for name in ("occ", "past_actions", "future_actions", "ego_poses"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+    for a, b in zip(got.planes, want.planes):
+        assert torch.equal(a, b)
+    loader = torch.utils.data.DataLoader(resident, batch_sampler=[order], collate_fn=task.collate)
+    assert torch.equal(next(iter(loader)).occ, want.occ)  # the trainer's loader gathers whole batches

@@ -45,7 +45,7 @@ from t3fast.training.cache_files import (
     write_entry,
 )
 from t3fast.training.triplane_cache import encoder_digest, plane_fields, planes_from, planes_payload
-from t3fast.training.world_model.windows import ego_aligned_window
+from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window
 
 # 2: the agents' velocities are stored with each window; 3: over one and two steps; 4: chained; 5: checked entries;
 # 6: the encoder's stem as label_conv3d (planes moved by up to 0.04)
@@ -165,6 +165,61 @@ class LabelledAlignedWindows(Dataset):
 
     def __getitem__(self, index: int) -> tuple[DrivingSample, Triplane]:
         return self.cache.windows[index], self.cache[index].planes
+
+
+class ResidentAlignedWindows(Dataset):
+    """:class:`LabelledAlignedWindows` held in ``device`` memory (a GPU's, where they fit:
+    :func:`fits_on`): each scene's frames and poses once, each window's planes in float16 and
+    actions; a batch is gathered on the device, already collated (``__getitems__``), so the
+    step reads nothing from disk or the host."""
+
+    def __init__(self, labelled: LabelledAlignedWindows, device: torch.device, progress: bool = True):
+        windows = labelled.cache.windows
+        scenes, frames = len(windows.scenes), windows.scenes.frames_per_scene
+        first = windows[0]
+        self.occ = torch.empty(scenes, frames, *first.occ.shape[1:], dtype=first.occ.dtype, device=device)
+        self.poses = torch.empty(scenes, frames, 4, 4, dtype=first.ego_poses.dtype, device=device)
+        self.windows = torch.tensor([windows.locate(i) for i in range(len(windows))], device=device)  # [N, 2]
+        items = []
+        for i in tqdm(range(len(windows)), desc="windows to the device", unit="window", disable=not progress):
+            sample, planes = windows[i], labelled.cache[i].planes
+            scene, start = windows.locate(i)
+            self.occ[scene, start : start + WINDOW] = sample.occ.to(device)
+            self.poses[scene, start : start + WINDOW] = sample.ego_poses.to(device)
+            half = planes.map(lambda p: p.to(device, torch.float16))
+            items.append((half, sample.past_actions, sample.future_actions))
+        self.planes = Triplane(*(None if items[0][0][k] is None else torch.stack([it[0][k] for it in items])
+                                 for k in range(3)))
+        self.past_actions = torch.stack([it[1] for it in items]).to(device)
+        self.future_actions = torch.stack([it[2] for it in items]).to(device)
+
+    def __len__(self) -> int:
+        return self.windows.shape[0]
+
+    def __getitems__(self, indices: list[int]) -> SequenceBatch:
+        index = torch.as_tensor(indices, device=self.windows.device)
+        scene, start = self.windows[index].unbind(1)
+        frames = start[:, None] + torch.arange(WINDOW, device=start.device)
+        return SequenceBatch(occ=self.occ[scene[:, None], frames], planes=self.planes.map(lambda p: p[index].float()),
+                             past_actions=self.past_actions[index], future_actions=self.future_actions[index],
+                             ego_poses=self.poses[scene[:, None], frames])
+
+
+def resident_bytes(labelled: LabelledAlignedWindows) -> int:
+    """The memory :class:`ResidentAlignedWindows` takes for ``labelled``."""
+    windows, cache = labelled.cache.windows, labelled.cache
+    first, planes = windows[0], cache[0].planes
+    frames = len(windows.scenes) * windows.scenes.frames_per_scene
+    per_frame = first.occ[0].numel() * first.occ.element_size() + 16 * first.ego_poses.element_size()
+    per_window = 2 * sum(p.numel() for p in planes if p is not None) + 20 * first.past_actions.element_size()
+    return frames * per_frame + len(windows) * per_window
+
+
+def fits_on(device: torch.device, size: int, share: float = 0.25) -> bool:
+    """Whether ``size`` bytes are at most ``share`` of a GPU's free memory (the rest is the
+    model's, its activations' and the allocator's); never on the CPU, where the windows are
+    read from disk by the loader instead."""
+    return device.type == "cuda" and size <= share * torch.cuda.mem_get_info(device)[0]
 
 
 @dataclass

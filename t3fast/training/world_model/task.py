@@ -28,7 +28,10 @@ from t3fast.training.world_model.latent_cache import (
     AlignedLatentCache,
     AlignedWindow,
     LabelledAlignedWindows,
+    ResidentAlignedWindows,
     collate_aligned,
+    fits_on,
+    resident_bytes,
 )
 from t3fast.training.world_model.latent_flips import random_flips
 from t3fast.training.world_model.loss import rollout_loss
@@ -106,7 +109,12 @@ class WorldModelTask:
                 if is_main():
                     cache.build()
                 barrier()
-                return LabelledAlignedWindows(cache) if data.cache_labels else cache
+                if not data.cache_labels:
+                    return cache
+                labelled = LabelledAlignedWindows(cache)
+                device = next(self._model.parameters()).device  # held there if they fit
+                fits = fits_on(device, resident_bytes(labelled))
+                return ResidentAlignedWindows(labelled, device, progress=is_main()) if fits else labelled
             if self.cfg.model.ego_aligned:  # moved into each window's present frame, encoded in the step
                 return windows
             planes = cached_scene_triplanes(self._encoder, windows.scenes, data.cache_dir)
@@ -117,7 +125,9 @@ class WorldModelTask:
             return Occ3DNuScenes(data.occ3d_root, data.occ3d_train_info, stride=data.stride)
         raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
 
-    def collate(self, batch_list: list) -> SequenceBatch | AlignedBatch:
+    def collate(self, batch_list: list | SequenceBatch) -> SequenceBatch | AlignedBatch:
+        if isinstance(batch_list, SequenceBatch):  # gathered on the device, already collated
+            return batch_list
         if isinstance(batch_list[0], AlignedWindow):
             return collate_aligned(batch_list)
         return collate_windows(batch_list)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from t3fast.errors import UsageError
+from t3fast.forecast.encode import encode_sequence
 from t3fast.forecast.plan import planned_poses
 from t3fast.forecast.render import observed_static, present_in_frames
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
@@ -40,6 +41,17 @@ def test_forecast_shapes_and_types():
     assert len(out.triplanes) == 6 and out.triplanes[0].xy.shape == (2, 8, 8, 6)
     assert out.actions.shape == (2, 6, 2)
     torch.testing.assert_close(out.trajectory, out.actions.cumsum(1))
+
+
+def test_every_frame_encoded_in_one_call_as_on_an_accelerator_gives_the_frame_by_frame_planes():
+    encoder = tiny_world_model().encoder.eval()
+    occupancy = torch.stack([random_labels(2, (16, 12, 4), seed=s) for s in range(3)], dim=1)  # [2, 3, X, Y, Z]
+    one_call = encode_sequence(encoder, occupancy, frame_by_frame=False)
+    by_frame = encode_sequence(encoder, occupancy)
+    assert one_call.xy.shape == by_frame.xy.shape == (2, 3, *by_frame.xy.shape[2:])
+    for a, b in zip(one_call, by_frame):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(one_call.xz[1, 2], encoder(occupancy[1:, 2]).xz[0], atol=1e-5, rtol=1e-5)
 
 
 def test_encoder_stays_frozen_in_training_mode():

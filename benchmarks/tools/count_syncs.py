@@ -1,7 +1,9 @@
 """Where the whole forecast waits on its data: the ops of one ``model.forecast`` whose result
 the host must read (a scalar read, ``nonzero``, ``unique``, boolean masks: data-dependent
 shapes), counted by the Python function that called them. On a GPU each is a host
-synchronisation; the forecast captured in one CUDA graph (or compiled whole) has none.
+synchronisation; the forecast captured in one CUDA graph (or compiled whole) has none. Then the
+same forecast as a GPU runs it, with the model and inputs on the meta device: its ops (each a
+kernel launch there), reads and copies of host data.
 
     python benchmarks/tools/count_syncs.py [--model wm-small]
 """
@@ -33,6 +35,13 @@ def main() -> None:
     print("by caller:")
     for name, count in counter.by_caller.most_common(25):
         print(f"  {count:6d}  {name}")
+    model.to("meta")
+    meta = occ.to("meta"), poses.to("meta")
+    model.forecast(*meta)  # the constants made once per device
+    with SyncCounter() as gpu_like:
+        model.forecast(*meta)
+    print(f"as a GPU runs it (on meta): {gpu_like.total} syncing ops, {gpu_like.dispatched} ops dispatched, "
+          f"{sum(gpu_like.host_data.values())} tensors made from host data")
 
 
 if __name__ == "__main__":

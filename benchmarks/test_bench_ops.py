@@ -13,6 +13,7 @@ import torch
 from _peak_memory import peak_memory_mb
 from workloads import (
     DEVICE,
+    GRID,
     IMPLS,
     POINTS,
     axis_pool_cost,
@@ -22,6 +23,7 @@ from workloads import (
     delta_fuse_shapes,
     label_conv3d_cost,
     make_decode_inputs,
+    query_points,
     rounds,
     run_decode,
     synchronized,
@@ -96,6 +98,27 @@ def test_decode_points_forward_backward(benchmark, decoder, precision_name, impl
             return torch.autograd.grad(out, params, torch.ones_like(out))
 
     benchmark.pedantic(synchronized(step), rounds=rounds(3), warmup_rounds=1)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_decode_live_points(benchmark, impl):
+    """What a GPU forecast decodes beyond the present grid: a frame-sized buffer of points (the
+    voxels beyond the grid gathered to its front, 15 % of a 200x200x16 frame here) with its
+    filled length on the device (``live``), to labels, small decoder: the fused op decodes the
+    filled part; the reference decodes the whole buffer and masks the rest."""
+    benchmark.group = "decode labels, 15% of a frame's buffer live, small"
+    planes, weights, biases, pe_freqs = make_decode_inputs("small")
+    n = GRID[0] * GRID[1] * GRID[2]
+    points = query_points(1, n, DEVICE)
+    live = torch.tensor([n * 15 // 100], device=DEVICE)
+    benchmark.extra_info.update(decode_cost("small", f"points:{int(live)}"))
+    op = IMPLS[impl].triplane_decode
+
+    def call():
+        with torch.no_grad():
+            return op(*planes, weights, biases, points=points, pe_freqs=pe_freqs, argmax=True, live=live)
+
+    benchmark.pedantic(synchronized(call), rounds=rounds(3), warmup_rounds=1)
 
 
 @pytest.mark.parametrize("impl", IMPL_NAMES)

@@ -15,10 +15,11 @@
 TORCH_LIBRARY(t3fast, m) {
   // Fused query-sum-decode of a triplane. Exactly one of points [B, N, 3] / grid (X, Y, Z).
   // Returns logits [B, N, K] / [B, X, Y, Z, K], or uint8 labels [B, N] / [B, X, Y, Z] when
-  // argmax is set.
+  // argmax is set. live (int64 [B], points and argmax only): decode the first live[b] points
+  // of each batch element, label 0 for the rest.
   m.def(
       "triplane_decode(Tensor xy, Tensor xz, Tensor yz, Tensor[] weights, Tensor[] biases, "
-      "Tensor? points, int[]? grid, int pe_freqs, bool argmax) -> Tensor");
+      "Tensor? points, int[]? grid, int pe_freqs, bool argmax, Tensor? live=None) -> Tensor");
   // Gradients of the logits with respect to the planes, weights and biases.
   m.def(
       "triplane_decode_backward(Tensor grad_out, Tensor xy, Tensor xz, Tensor yz, "

@@ -123,6 +123,17 @@ TriplaneProblem parse_triplane_args(const at::Tensor& xy, const at::Tensor& xz,
   return p;
 }
 
+void check_live(const c10::optional<at::Tensor>& live, const TriplaneProblem& p, bool argmax,
+                const at::Tensor& xy, const char* op) {
+  if (!live.has_value()) return;
+  T3FAST_CHECK(!p.grid_mode && argmax, op,
+               "live counts the points to decode: it needs points and argmax=True");
+  check_same_device(*live, xy, op, "live", "xy");
+  T3FAST_CHECK(live->scalar_type() == at::kLong, op, "live must be int64, got ", live->scalar_type());
+  T3FAST_CHECK(live->dim() == 1 && live->size(0) == p.B, op, "live must be [B] = [", p.B,
+               "] (one count per batch element), got ", live->sizes());
+}
+
 TriplaneProblem parse_triplane_backward_args(const at::Tensor& grad_out, const at::Tensor& xy,
                                              const at::Tensor& xz, const at::Tensor& yz,
                                              at::TensorList weights, at::TensorList biases,

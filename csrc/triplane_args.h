@@ -38,6 +38,11 @@ TriplaneProblem parse_triplane_args(const at::Tensor& xy, const at::Tensor& xz,
                                     c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax,
                                     const char* op);
 
+// Checks triplane_decode's `live` against the parsed problem: int64 [B] on xy's device, points
+// and argmax mode only (its values are not read: the kernels clamp them to [0, N]).
+void check_live(const c10::optional<at::Tensor>& live, const TriplaneProblem& p, bool argmax,
+                const at::Tensor& xy, const char* op);
+
 // The same for triplane_decode_backward, whose grad_out must look like the forward's logits.
 TriplaneProblem parse_triplane_backward_args(const at::Tensor& grad_out, const at::Tensor& xy,
                                              const at::Tensor& xz, const at::Tensor& yz,

@@ -226,18 +226,29 @@ at::Tensor run_layers(const Problem& p, int64_t first, at::Tensor h, at::Tensor&
   return h;
 }
 
-// Forward with explicit features per chunk (points mode).
+// Forward with explicit features per chunk (points mode). With `live` (one count per batch
+// element, clamped to [0, N]) only each element's first live[b] points are decoded.
 template <typename T>
-void forward_features(const Problem& p, at::Tensor& out, bool argmax) {
-  const int64_t total = p.B * p.per_batch;
-  const int64_t chunks = (total + kChunk - 1) / kChunk;
+void forward_features(const Problem& p, at::Tensor& out, bool argmax, const int64_t* live) {
+  std::vector<std::pair<int64_t, int64_t>> ranges;  // (first query, count) to decode
+  if (live == nullptr) {
+    ranges.emplace_back(0, p.B * p.per_batch);
+  } else {
+    for (int64_t b = 0; b < p.B; ++b) {
+      ranges.emplace_back(b * p.per_batch, std::clamp<int64_t>(live[b], 0, p.per_batch));
+    }
+  }
+  std::vector<std::pair<int64_t, int64_t>> chunks;  // (start, rows)
+  for (const auto& [first, count] : ranges) {
+    for (int64_t c = 0; c < count; c += kChunk) chunks.emplace_back(first + c, std::min(kChunk, count - c));
+  }
   const auto opts = p.xy.options();
-  at::parallel_for(0, chunks, 1, [&](int64_t begin, int64_t end) {
+  at::parallel_for(0, static_cast<int64_t>(chunks.size()), 1, [&](int64_t begin, int64_t end) {
     at::Tensor feat = at::empty({kChunk * p.widths[0]}, opts);
     at::Tensor ping = at::empty({kChunk * p.max_width()}, opts);
     at::Tensor pong = at::empty({kChunk * p.max_width()}, opts);
     for (int64_t c = begin; c < end; ++c) {
-      const int64_t start = c * kChunk, rows = std::min(kChunk, total - start);
+      const auto [start, rows] = chunks[c];
       fill_features<T>(p, start, rows, feat.data_ptr<T>());
       at::Tensor logits =
           run_layers<T>(p, 0, view2d(feat, rows, p.widths[0]), ping, pong, out, start, argmax);
@@ -379,19 +390,23 @@ void forward_grid(const Problem& p, at::Tensor& out, bool argmax) {
 at::Tensor triplane_decode_cpu(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
                                at::TensorList weights, at::TensorList biases,
                                const c10::optional<at::Tensor>& points,
-                               c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
+                               c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax,
+                               const c10::optional<at::Tensor>& live) {
   // The kernel uses ATen ops internally; they must not record autograd history.
   at::AutoDispatchBelowADInplaceOrView guard;
   const Problem p = make_problem(
       parse_triplane_args(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, kOp), xy,
       xz, yz, weights, biases, points);
+  check_live(live, p, argmax, xy, kOp);
   at::Tensor out = p.empty_output(xy, argmax);
   if (out.numel() == 0) return out;
+  const at::Tensor counts = live.has_value() ? live->contiguous() : at::Tensor();
+  if (counts.defined()) out.zero_();  // the labels of the points not decoded
   AT_DISPATCH_FLOATING_TYPES(xy.scalar_type(), "triplane_decode_cpu", [&] {
     if (p.grid_mode) {
       forward_grid<scalar_t>(p, out, argmax);
     } else {
-      forward_features<scalar_t>(p, out, argmax);
+      forward_features<scalar_t>(p, out, argmax, counts.defined() ? counts.data_ptr<int64_t>() : nullptr);
     }
   });
   return out;

@@ -71,12 +71,15 @@ struct Triplane {
 
 // The query points: points [batch, num_points, 3] (contiguous) or, when points is null, the
 // voxel centres of a gx x gy x gz grid (num_points = gx * gy * gz, z fastest). Point g of the
-// flattened [batch * num_points] range belongs to batch g / num_points.
+// flattened [batch * num_points] range belongs to batch g / num_points. With live [batch]
+// (points and labels only), point n of batch b is decoded when n < live[b]; the others get
+// label 0.
 template <typename T>
 struct Query {
   const T* points;
   int64_t num_points;
   int gx, gy, gz;
+  const int64_t* live;  // null: every point
 };
 
 // The MLP: weight[i] [width[i + 1], width[i]] and bias[i] [width[i + 1]], contiguous.

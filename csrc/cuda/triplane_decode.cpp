@@ -50,6 +50,7 @@ constexpr int64_t kBackwardChunk = 65536;
 struct Problem : TriplaneProblem {
   at::Tensor xy, xz, yz;
   at::Tensor points;  // [B, N, 3], undefined in grid mode
+  at::Tensor live;    // [B] int64 counts of the points to decode, or undefined: all
   std::vector<at::Tensor> weights, biases;
 
   explicit Problem(TriplaneProblem sizes) : TriplaneProblem(std::move(sizes)) {}
@@ -98,6 +99,7 @@ cuda::Query<T> query_of(const Problem& p) {
   q.gx = static_cast<int>(p.GX);
   q.gy = static_cast<int>(p.GY);
   q.gz = static_cast<int>(p.GZ);
+  q.live = p.live.defined() ? p.live.data_ptr<int64_t>() : nullptr;
   return q;
 }
 
@@ -213,10 +215,13 @@ cudaError_t forward_mma(const Problem& p, Precision precision, int64_t pe_freqs,
 at::Tensor triplane_decode_cuda(const at::Tensor& xy, const at::Tensor& xz, const at::Tensor& yz,
                                 at::TensorList weights, at::TensorList biases,
                                 const c10::optional<at::Tensor>& points,
-                                c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax) {
-  const Problem p = make_problem(
+                                c10::OptionalIntArrayRef grid, int64_t pe_freqs, bool argmax,
+                                const c10::optional<at::Tensor>& live) {
+  Problem p = make_problem(
       parse_triplane_args(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, kOp), xy,
       xz, yz, weights, biases, points, kOp);
+  check_live(live, p, argmax, xy, kOp);
+  if (live.has_value()) p.live = live->contiguous();
   const c10::DeviceGuard device_guard(xy.device());
   // The precision is read from the autocast state; the padding copies must not be cast.
   const Precision precision = forward_precision(xy, kOp);

@@ -167,6 +167,7 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
 
   const int64_t total = planes.batch * query.num_points;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
+  if (skip_dead_block(query, first, total, P, labels)) return;
 
   stage_points(query, first, total, P, kThreads, batch_of, coord);
   __syncthreads();
@@ -224,7 +225,7 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
           best_o = o;
         }
       }
-      labels[g] = static_cast<uint8_t>(best_o);
+      labels[g] = query_live(query, g) ? static_cast<uint8_t>(best_o) : uint8_t{0};
     }
   }
 }

@@ -236,6 +236,7 @@ __device__ __forceinline__ void decode_tile(const Triplane<T>& planes, const Que
 
   const int64_t total = planes.batch * query.num_points;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
+  if (skip_dead_block(query, first, total, P, labels)) return;
 
   stage_points(query, first, total, P, kThreads, batch_of, coord);
   __syncthreads();
@@ -286,7 +287,7 @@ __device__ __forceinline__ void decode_tile(const Triplane<T>& planes, const Que
           best_o = o;
         }
       }
-      labels[g] = static_cast<uint8_t>(best_o);
+      labels[g] = query_live(query, g) ? static_cast<uint8_t>(best_o) : uint8_t{0};
     }
   }
 }

@@ -118,6 +118,30 @@ __device__ __forceinline__ void stage_points(const Query<T>& q, int64_t first, i
   }
 }
 
+// Whether point g of the flattened query range is decoded (see Query::live).
+template <typename T>
+__device__ __forceinline__ bool query_live(const Query<T>& q, int64_t g) {
+  if (q.live == nullptr) return true;
+  const int64_t b = g / q.num_points;
+  return g - b * q.num_points < q.live[b];
+}
+
+// The labels of a block's points [first, first + P) when none of them is decoded: 0, and true
+// (the block is done); false when some are. Block-uniform, so the block returns as a whole;
+// every thread of the block must call it.
+template <typename T>
+__device__ __forceinline__ bool skip_dead_block(const Query<T>& q, int64_t first, int64_t total, int P,
+                                                uint8_t* labels) {
+  if (q.live == nullptr) return false;
+  int any = 0;
+  for (int p = threadIdx.x; p < P; p += blockDim.x) any |= first + p < total && query_live(q, first + p);
+  if (__syncthreads_or(any)) return false;
+  for (int p = threadIdx.x; p < P; p += blockDim.x) {
+    if (first + p < total && labels != nullptr) labels[first + p] = 0;
+  }
+  return true;
+}
+
 // Feature ``j`` of the MLP's input at a point: a plane channel, then the positional encoding,
 // then zero up to the padded width ``in0`` onwards.
 template <typename T, typename A>

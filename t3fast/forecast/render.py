@@ -165,14 +165,22 @@ class DrawAgents:
 
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
         """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there:
-        decoding those voxels alone where the host may find them
-        (:func:`~t3fast.host_syncs.reads_host`), else every voxel of the frame."""
+        decoding those voxels alone. Where the host may read (:func:`~t3fast.host_syncs.reads_host`)
+        it lists them; elsewhere they are gathered to the front of a frame-sized buffer whose
+        filled length stays on the device, and the decoder decodes that length only."""
         compact = reads_host(labels.device)
         for k, future in enumerate(futures):
             if not compact:
-                frames = labels[:, k].flatten(1)
-                decoded = self.decoder.predict(future, frame_queries(poses[:, k].float(), self.decoder.grid))
-                frames.copy_(torch.where(frames == IGNORE, beyond_present(decoded.view_as(frames)), frames))
+                frames = labels[:, k].flatten(1)  # [B, N]
+                unseen = frames == IGNORE
+                n = frames.shape[1]
+                slot = torch.where(unseen, unseen.cumsum(1) - 1, n)  # an unseen voxel's place in the buffer
+                voxels = torch.zeros(frames.shape[0], n + 1, dtype=torch.long, device=frames.device)
+                voxels.scatter_(1, slot, torch.arange(n, device=frames.device).expand_as(slot))
+                points = voxel_queries(poses[:, k].float(), self.decoder.grid, voxels[:, :n])
+                decoded = self.decoder.predict(future, points, live=unseen.sum(1))
+                fill = beyond_present(decoded).gather(1, slot.clamp(max=n - 1))
+                frames.copy_(torch.where(unseen, fill, frames))
                 continue
             for n in range(labels.shape[0]):
                 frame = labels[n, k].view(-1)

@@ -110,7 +110,7 @@ class TriplaneDecoder(nn.Module):
             return Triplane(xy, xy.new_zeros(b, c, x, 1), xy.new_zeros(b, c, y, 1))
         return Triplane(xy, self.refiners[1](triplane[1]), self.refiners[2](triplane[2]))
 
-    def _decode(self, triplane, points: Tensor | None, argmax: bool) -> Tensor:
+    def _decode(self, triplane, points: Tensor | None, argmax: bool, live: Tensor | None = None) -> Tensor:
         # under autocast the refiners may return a lower precision than the MLP's weights
         dtype = self.mlp[0].weight.dtype
         planes = self.features(triplane).map(lambda p: p.to(dtype))
@@ -118,6 +118,8 @@ class TriplaneDecoder(nn.Module):
         biases = [layer.bias for layer in self.mlp]
         op = (fused_ops if self.backend == "fused" else reference_ops).triplane_decode
         query = {"grid": self.grid} if points is None else {"points": points.to(dtype)}
+        if live is not None:
+            query["live"] = live
         return op(*planes, weights, biases, pe_freqs=self.pe_freqs, argmax=argmax, **query)
 
     def forward(self, triplane: Triplane | Sequence[Tensor], points: Tensor | None = None) -> Tensor:
@@ -126,7 +128,9 @@ class TriplaneDecoder(nn.Module):
         return self._decode(triplane, points, argmax=False)
 
     @torch.no_grad()
-    def predict(self, triplane: Triplane | Sequence[Tensor], points: Tensor | None = None) -> Tensor:
+    def predict(self, triplane: Triplane | Sequence[Tensor], points: Tensor | None = None,
+                live: Tensor | None = None) -> Tensor:
         """uint8 class labels ``[B, X, Y, Z]`` (or ``[B, N]``) through the argmax mode: no
-        logits tensor is allocated."""
-        return self._decode(triplane, points, argmax=True)
+        logits tensor is allocated. ``live`` int64 ``[B]``: decode only each element's first
+        ``live[b]`` points (label 0 beyond; see :func:`t3fast.ops.triplane_decode`)."""
+        return self._decode(triplane, points, argmax=True, live=live)

@@ -166,12 +166,13 @@ def frame_queries(poses: Tensor, grid: tuple[int, int, int]) -> Tensor:
 
 
 def voxel_queries(poses: Tensor, grid: tuple[int, int, int], voxels: Tensor) -> Tensor:
-    """:func:`frame_queries` of the flat voxel indices ``voxels`` ``[N]`` only (the same for
-    every frame): ``[B, N, 3]``, equal to ``frame_queries(poses, grid)[:, voxels]`` without
-    building the other voxels' points."""
+    """:func:`frame_queries` of the flat voxel indices ``voxels`` only (``[N]``: the same for
+    every frame; ``[B, N]``: per frame): ``[B, N, 3]``, equal to
+    ``frame_queries(poses, grid)[:, voxels]`` without building the other voxels' points."""
     x, y, z = _query_axes(poses, grid)
     column, level = voxels // grid[2], voxels % grid[2]
-    return torch.stack([x[:, column], y[:, column], z[level].expand(poses.shape[0], -1)], -1)
+    column = column.expand(poses.shape[0], -1)
+    return torch.stack([x.gather(1, column), y.gather(1, column), z[level].expand(poses.shape[0], -1)], -1)
 
 
 def _query_axes(poses: Tensor, grid: tuple[int, int, int]) -> tuple[Tensor, Tensor, Tensor]:

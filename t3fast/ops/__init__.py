@@ -67,6 +67,7 @@ def triplane_decode(
     points: Tensor | None = None,
     pe_freqs: int = 6,
     argmax: bool = False,
+    live: Tensor | None = None,
 ) -> Tensor:
     """Fused triplane query -> sum -> positional encoding -> MLP decode.
 
@@ -91,6 +92,11 @@ def triplane_decode(
             tensor is ever allocated; needs 1 to 256 classes). Exactly what
             ``torch.argmax`` returns on the logits: NaN counts as the maximum, so a row
             with a NaN logit gets its first NaN's class.
+        live: int64 ``[B]`` on the planes' device (``points`` and ``argmax`` only): decode
+            only the first ``live[b]`` points of batch element ``b`` (clamped to ``[0, N]``)
+            and give the others label 0. The counts stay on the device, so a fixed-size
+            buffer of points, filled to a data-dependent length, costs what its filled part
+            costs without a host read.
 
     Returns:
         logits ``[B, X, Y, Z, K]`` (grid) or ``[B, N, K]`` (points); with ``argmax`` uint8
@@ -104,11 +110,11 @@ def triplane_decode(
     if grid is not None and weights:
         grid = checked_grid(grid, xy, weights[-1].shape[0], argmax)
     if ops is None:
-        _checks.check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax)
+        _checks.check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, live)
         # as the kernels: the points receive no gradient
         points = None if points is None else points.detach()
         return reference.triplane_decode(xy, xz, yz, weights, biases, grid=grid, points=points,
-                                         pe_freqs=pe_freqs, argmax=argmax)
+                                         pe_freqs=pe_freqs, argmax=argmax, live=live)
     return ops.triplane_decode.default(
         xy,
         xz,
@@ -119,6 +125,7 @@ def triplane_decode(
         grid,
         int(pe_freqs),
         bool(argmax),
+        live,
     )
 
 

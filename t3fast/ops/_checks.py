@@ -110,7 +110,8 @@ def _check_float(t: torch.Tensor, op: str, name: str) -> None:
                  f"{name} must be float32 or float64 on CPU, got {_dtype_name(t.dtype)}")
 
 
-def check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs: int, argmax: bool) -> None:
+def check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs: int, argmax: bool,
+                          live=None) -> None:
     """triplane_decode's arguments, as csrc/triplane_args.cpp checks them."""
     op = "triplane_decode"
     _check_dim(xy, op, "xy", 4, "[B, C, X', Y']")
@@ -158,6 +159,12 @@ def check_triplane_decode(xy, xz, yz, weights, biases, points, grid, pe_freqs: i
         _require(b.shape[0] == w.shape[0], op,
                  f"biases[{i}].shape[0] must be {w.shape[0]} (weights[{i}].shape[0]), got {b.shape[0]}")
         width = w.shape[0]
+    if live is not None:
+        _require(points is not None and argmax, op, "live counts the points to decode: it needs points and argmax=True")
+        _check_device(live, xy, op, "live", "xy")
+        _require(live.dtype == torch.int64, op, f"live must be int64, got {_dtype_name(live.dtype)}")
+        _require(live.dim() == 1 and live.shape[0] == xy.shape[0], op,
+                 f"live must be [B] = [{xy.shape[0]}] (one count per batch element), got {list(live.shape)}")
     _require(not argmax or 1 <= width <= 256, op,
              f"argmax=True needs 1 to 256 classes (uint8 labels), got {width}")
 

@@ -41,12 +41,15 @@ def _named(prefix: str, tensors) -> dict:
 
 # ---------------------------------------------------------------- triplane_decode
 @torch.library.register_fake("t3fast::triplane_decode")
-def _triplane_decode_fake(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax):
+def _triplane_decode_fake(xy, xz, yz, weights, biases, points, grid, pe_freqs, argmax, live=None):
     torch._check(xy.dim() == 4, lambda: f"xy must have 4 dims, got {xy.dim()}")
     torch._check(len(weights) > 0, lambda: "weights must hold at least one layer")
     torch._check((points is None) != (grid is None), lambda: "exactly one of grid/points")
     _check_like("triplane_decode", "xy", xy, xz=xz, yz=yz, points=points,
                 **_named("weights", weights), **_named("biases", biases))
+    torch._check(live is None or (points is not None and argmax), lambda: "live needs points and argmax=True")
+    torch._check(live is None or live.device == xy.device,
+                 lambda: f"t3fast.triplane_decode: live must be on the same device as xy ({xy.device})")
     shape = (xy.shape[0], *grid) if grid is not None else (xy.shape[0], points.shape[1])
     if argmax:
         return xy.new_empty(shape, dtype=torch.uint8)
@@ -73,7 +76,10 @@ def _cuda_autocast_dtype(t: torch.Tensor) -> torch.dtype | None:
 
 
 def _triplane_decode_setup(ctx, inputs, output):
-    xy, xz, yz, weights, biases, points, grid, pe_freqs, _ = inputs
+    xy, xz, yz, weights, biases, points, grid, pe_freqs, _, *live = inputs
+    # the dispatcher drops a trailing argument left at its default: a gradient slot for live
+    # only when it was given
+    ctx.given_live = bool(live) and live[0] is not None
     ctx.layers = len(weights)
     ctx.grid = grid
     ctx.pe_freqs = pe_freqs
@@ -91,8 +97,9 @@ def _triplane_decode_backward(ctx, grad):
         gxy, gxz, gyz, gw, gb = ops.triplane_decode_backward.default(
             grad, xy, xz, yz, weights, biases, points, ctx.grid, ctx.pe_freqs
         )
-    # query points and the integer arguments get no gradient
-    return gxy, gxz, gyz, list(gw), list(gb), None, None, None, None
+    # query points, the integer arguments and the live counts get no gradient
+    grads = (gxy, gxz, gyz, list(gw), list(gb), None, None, None, None)
+    return grads + (None,) * ctx.given_live
 
 
 torch.library.register_autograd(

@@ -96,6 +96,7 @@ def triplane_decode(
     points: Tensor | None = None,
     pe_freqs: int = 6,
     argmax: bool = False,
+    live: Tensor | None = None,
 ) -> Tensor:
     """Reference of :func:`t3fast.ops.triplane_decode` (see there for the contract)."""
     if (grid is None) == (points is None):
@@ -110,7 +111,11 @@ def triplane_decode(
         out_shape = tuple(points.shape[:2])
     logits = mlp(triplane_features(xy, xz, yz, query, pe_freqs), weights, biases)
     if argmax:
-        return logits.argmax(-1).to(torch.uint8).reshape(out_shape)
+        labels = logits.argmax(-1).to(torch.uint8).reshape(out_shape)
+        if live is not None:  # the points beyond each element's count: label 0
+            decoded = torch.arange(labels.shape[1], device=labels.device) < live[:, None]
+            labels = torch.where(decoded, labels, torch.zeros_like(labels))
+        return labels
     return logits.reshape(*out_shape, logits.shape[-1])
 
 

@@ -65,6 +65,26 @@ def test_triplane_decode_argmax_needs_1_to_256_classes(device, classes):
         triplane_decode(*planes, weights, biases, grid=(4, 4, 2), pe_freqs=1, argmax=True)
 
 
+@pytest.mark.parametrize(
+    "overrides, pattern",
+    [
+        (dict(argmax=True), r"live counts the points to decode: it needs points and argmax=True"),
+        (dict(grid=None, points=torch.rand(2, 10, 3)), r"it needs points and argmax=True"),
+        (dict(grid=None, points=torch.rand(2, 10, 3), argmax=True, live=torch.tensor([1, 2], dtype=torch.int32)),
+         r"live must be int64, got Int"),
+        (dict(grid=None, points=torch.rand(2, 10, 3), argmax=True, live=torch.tensor([1, 2, 3])),
+         r"live must be \[B\] = \[2\] \(one count per batch element\), got \[3\]"),
+        (dict(grid=None, points=torch.rand(2, 10, 3), argmax=True, live=torch.tensor([1, 2], device="meta")),
+         r"live must be on the same device as xy"),
+    ],
+)
+def test_triplane_decode_rejects_live_counts_it_cannot_use(overrides, pattern):
+    args = decode_args(live=torch.tensor([1, 2]))
+    args.update(overrides)
+    with pytest.raises(RuntimeError, match=r"t3fast\.triplane_decode: .*" + pattern):
+        call_decode(args)
+
+
 def test_mixed_devices_name_the_argument():
     args = decode_args(xz=torch.randn(2, 4, 5, 3, device="meta"))
     pattern = r"xz must be on the same device as xy \(cpu\), got meta"

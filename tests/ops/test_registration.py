@@ -20,6 +20,9 @@ def _decode_samples(device):
     yield (xy, xz, yz, [w0, w1], [b0, b1], points, None, 1, False)
     yield (xy.detach(), xz.detach(), yz.detach(), [w0.detach(), w1.detach()],
            [b0.detach(), b1.detach()], None, [3, 2, 4], 1, True)
+    live = torch.tensor([4, 9], device=device)
+    yield (xy.detach(), xz.detach(), yz.detach(), [w0.detach(), w1.detach()],
+           [b0.detach(), b1.detach()], points, None, 1, True, live)
 
 
 def test_opcheck_triplane_decode(device):

@@ -181,3 +181,34 @@ def test_double_backward_raises_instead_of_a_zero_gradient(mode):
     (g,) = torch.autograd.grad((reference.triplane_decode(*planes, weights, biases, pe_freqs=1, **query) ** 2)
                                .sum(), planes[0], create_graph=True)
     assert torch.autograd.grad((g**2).sum(), planes[0])[0].abs().sum() > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_live_decodes_each_elements_first_points_and_labels_the_rest_0(device, dtype):
+    """A fixed-size buffer of points filled to a count per element (kept on the device):
+    the labels of the counted points are those of a full decode, the others 0; counts clamp
+    to [0, N]."""
+    planes, weights, biases = make_inputs(5, 6, (9, 7, 5), [32, 16], 2, 11, device=device, dtype=dtype)
+    n = 5003  # several CPU chunks and GPU blocks, the last ones partial
+    points = random_points(5, n, device, dtype)
+    counts = torch.tensor([0, 1, 2049, n + 7, -3], device=device)
+    live = torch.stack([counts, torch.zeros_like(counts)], 1)[:, 0]  # not contiguous
+    got = triplane_decode(*planes, weights, biases, points=points, pe_freqs=2, argmax=True, live=live)
+    full = triplane_decode(*planes, weights, biases, points=points, pe_freqs=2, argmax=True)
+    decoded = torch.arange(n, device=device) < counts.clamp(0, n)[:, None]
+    assert torch.equal(got, torch.where(decoded, full, torch.zeros_like(full)))
+    assert full[decoded].ne(0).any() and full[~decoded].ne(0).any()  # both parts can tell
+    want = reference.triplane_decode(*planes, weights, biases, points=points, pe_freqs=2, argmax=True, live=live)
+    assert torch.equal(got, want)
+
+
+def test_live_compiles_into_a_graph(device):
+    planes, weights, biases = make_inputs(2, 4, (5, 6, 3), [8], 1, 5, device=device)
+    points = random_points(2, 40, device)
+
+    def decode(points, live):
+        return triplane_decode(*planes, weights, biases, points=points, pe_freqs=1, argmax=True, live=live)
+
+    live = torch.tensor([17, 40], device=device)
+    compiled = torch.compile(decode, fullgraph=True, backend="aot_eager")
+    assert torch.equal(compiled(points, live), decode(points, live))

@@ -45,6 +45,10 @@ with warnings.catch_warnings(record=True) as caught:
             want = reference.triplane_decode(*planes, weights, biases, pe_freqs=1, argmax=argmax, **query)
             assert got.dtype == (torch.uint8 if argmax else torch.float32), got.dtype
             assert torch.equal(got, want), (query, argmax)
+    live = torch.tensor([3, 0])
+    got = t3fast.triplane_decode(*planes, weights, biases, pe_freqs=1, argmax=True, points=random_points(2, 7),
+                                 live=live)
+    assert got[0, 3:].eq(0).all() and got[1].eq(0).all(), got
 
     volume = torch.randn(2, 3, 4, 5, 6)
     for got, want in zip(t3fast.axis_pool(volume), reference.axis_pool(volume)):

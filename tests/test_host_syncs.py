@@ -13,7 +13,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.device_constants import device_constant
 from t3fast.host_syncs import SyncCounter, sync_free
-from t3fast.pretrained import load_world_model
+from t3fast.pretrained import load_world_model, shipped_names
 
 #: syncing ops of one forecast of the window below at this version; lower it as parts go sync-free
 MAX_FORECAST_SYNCS = 58
@@ -75,11 +75,12 @@ def test_the_shipped_forecast_waits_no_more_often_than_before(forecast_syncs):
     assert forecast_syncs.total <= MAX_FORECAST_SYNCS, forecast_syncs.by_caller.most_common(10)
 
 
-def test_without_host_reads_the_forecast_waits_only_once_for_its_input_checks():
-    """As a GPU run: the agents in fixed slots, the voxels beyond the grid decoded with the
-    rest, the inputs' values checked together; the same forecast as the CPU's compacted records
-    give."""
-    model = load_world_model("wm-small")
+@pytest.mark.parametrize("name", shipped_names())
+def test_without_host_reads_the_forecast_waits_only_once_for_its_input_checks(name):
+    """As a GPU run: the agents in fixed slots, the voxels to decode gathered into a buffer
+    whose length stays on the device, the inputs' values checked together; the same forecast
+    as the CPU's compacted records give, for every shipped model."""
+    model = load_world_model(name)
     sample = SyntheticDriving("val", 1, 20, stride=9)[0]
     args = sample.occ[None, : PRESENT + 1], sample.ego_poses[None, : PRESENT + 1]
     with sync_free(), SyncCounter() as counter:

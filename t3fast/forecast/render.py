@@ -53,6 +53,26 @@ def observed_static(decoded: Tensor, reference: Tensor, moved: Tensor) -> Tensor
     return torch.where(moved == IGNORE, beyond_present(decoded), inside)
 
 
+def front_slots(mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The True entries of ``mask`` ``[B, N]`` gathered, in order, to the front of a buffer of
+    N, all on the device (no host read): each entry's place ``slot`` ``[B, N]`` (N for a False
+    one), the entry at each place ``index`` ``[B, N]`` (0 past the filled part) and the filled
+    length ``count`` ``[B]``."""
+    n = mask.shape[1]
+    slot = torch.where(mask, mask.cumsum(1) - 1, n)
+    index = torch.zeros(mask.shape[0], n + 1, dtype=torch.long, device=mask.device)
+    index.scatter_(1, slot, torch.arange(n, device=mask.device).expand_as(slot))
+    return slot, index[:, :n], mask.sum(1)
+
+
+def decode_where(decoder: TriplaneDecoder, planes: Triplane, points: Tensor, mask: Tensor) -> Tensor:
+    """``decoder.predict(planes, points)`` (``points`` ``[B, N, 3]``) where ``mask`` ``[B, N]``
+    holds, decoding those points only (:func:`front_slots`, ``live``); 0 elsewhere."""
+    slot, index, count = front_slots(mask)
+    buffer = points.gather(1, index[..., None].expand(-1, -1, points.shape[-1]))
+    return decoder.predict(planes, buffer, live=count).gather(1, slot.clamp(max=mask.shape[1] - 1))
+
+
 def beyond_present(decoded: Tensor) -> Tensor:
     """What a forecast shows beyond the observed present grid: its decoded flat ground (roads
     and sidewalks go on), everything else free."""
@@ -86,7 +106,9 @@ class KeepObservedStatic:
     present triplane does, so :func:`observed_static` keeps the observed label there. Only the
     voxels near changed xy cells and those beyond the present grid are decoded; a forecaster that
     moves a few agents and carries xz/yz (the flow forecaster) decodes a few percent of each
-    frame. Same labels as decoding every voxel."""
+    frame. Same labels as decoding every voxel. Where the host may not read
+    (:func:`~t3fast.host_syncs.reads_host`), those voxels are decoded from a buffer whose length
+    stays on the device (:func:`decode_where`)."""
 
     def __init__(self, decoder: TriplaneDecoder):
         self.decoder = decoder
@@ -99,12 +121,20 @@ class KeepObservedStatic:
         b = moved.shape[0]
         h, w = present_planes.xy.shape[-2:]
         now = self.decoder.features(present_planes)  # what the lookups read: the refined planes
+        compact = reads_host(moved.device)
         for k, future in enumerate(scene.futures):
             points = frame_queries(poses[:, k].float(), self.decoder.grid)  # [B, N, 3], normalised
             i = ((points[..., 0] + 1) * h / 2 - 0.5).round().long().clamp(0, h - 1)
             j = ((points[..., 1] + 1) * w / 2 - 0.5).round().long().clamp(0, w - 1)
             observed = moved[:, k].reshape(b, -1)
-            need = self._changed_cells(future, now).flatten(1).gather(1, i * w + j) | (observed == IGNORE)
+            need = self._changed_cells(future, now, compact).flatten(1).gather(1, i * w + j) | (observed == IGNORE)
+            if not compact:
+                decoded = decode_where(self.decoder, future, points, need)
+                agents = need & (in_classes(decoded, AGENT_CLASSES) | in_classes(observed, AGENT_CLASSES))
+                reference = torch.where(agents, decode_where(self.decoder, present_planes, points, agents), decoded)
+                edited = torch.where(need, observed_static(decoded, reference, observed), observed)
+                labels[:, k] = edited.view_as(labels[:, k])
+                continue
             for n in range(b):
                 index = need[n].nonzero().squeeze(1)
                 if not index.numel():
@@ -116,16 +146,21 @@ class KeepObservedStatic:
                 labels[n, k].view(-1)[index] = observed_static(decoded, reference, observed[n, index])
         return labels
 
-    def _changed_cells(self, future: Triplane, now: Triplane) -> Tensor:
+    def _changed_cells(self, future: Triplane, now: Triplane, compact: bool) -> Tensor:
         """``[B, H, W]``: the xy cells whose lookups can read a refined plane of ``future`` that
-        differs from the present's ``now``."""
+        differs from the present's ``now`` (every cell where xz or yz changed: decided on the
+        host when ``compact``, else on the device)."""
         refined = self.decoder.features(future)
         b, _, h, w = now.xy.shape
-        if not (torch.equal(refined.xz, now.xz) and torch.equal(refined.yz, now.yz)):
+        if compact and not (torch.equal(refined.xz, now.xz) and torch.equal(refined.yz, now.yz)):
             return torch.ones(b, h, w, dtype=torch.bool, device=now.xy.device)  # xz/yz changed: every voxel
         # a lookup reads the 2 x 2 cells around its point: the nearest one's 3 x 3 neighbourhood covers them
         diff = (refined.xy != now.xy).any(1, keepdim=True).float()
-        return nn.functional.max_pool2d(diff, 3, stride=1, padding=1)[:, 0] > 0
+        cells = nn.functional.max_pool2d(diff, 3, stride=1, padding=1)[:, 0] > 0
+        if compact:
+            return cells
+        vertical = [(r != p).flatten(1).any(1) for r, p in zip(refined[1:], now[1:]) if p is not None]
+        return cells | torch.stack(vertical).any(0)[:, None, None] if vertical else cells
 
     def _present_where_agents(self, planes: Triplane, points: Tensor, decoded: Tensor, observed: Tensor) -> Tensor:
         """The reference of :func:`observed_static` for one frame's voxels: their forecast labels
@@ -173,13 +208,10 @@ class DrawAgents:
             if not compact:
                 frames = labels[:, k].flatten(1)  # [B, N]
                 unseen = frames == IGNORE
-                n = frames.shape[1]
-                slot = torch.where(unseen, unseen.cumsum(1) - 1, n)  # an unseen voxel's place in the buffer
-                voxels = torch.zeros(frames.shape[0], n + 1, dtype=torch.long, device=frames.device)
-                voxels.scatter_(1, slot, torch.arange(n, device=frames.device).expand_as(slot))
-                points = voxel_queries(poses[:, k].float(), self.decoder.grid, voxels[:, :n])
-                decoded = self.decoder.predict(future, points, live=unseen.sum(1))
-                fill = beyond_present(decoded).gather(1, slot.clamp(max=n - 1))
+                slot, voxels, count = front_slots(unseen)  # only the unseen voxels' points are built
+                points = voxel_queries(poses[:, k].float(), self.decoder.grid, voxels)
+                decoded = self.decoder.predict(future, points, live=count)
+                fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1))
                 frames.copy_(torch.where(unseen, fill, frames))
                 continue
             for n in range(labels.shape[0]):

@@ -160,9 +160,8 @@ class T3Former(nn.Module):
         """Compile :meth:`forecast` after its input checks into one graph
         (:func:`~t3fast.forecast.compiled.compiled_forecast`: ``torch.compile`` with ``options``,
         on CUDA one CUDA graph); call it once the model is on its device. The forecasts are the
-        eager ones. The layouts that draw their agents (the shipped ``wm-small``) trace whole;
-        the others read the host and need ``fullgraph=False``. For a GPU: it runs the fixed-size
-        code a GPU needs (:func:`~t3fast.host_syncs.sync_free`), which on the CPU is 4x slower
-        than the eager forecast. Returns the model."""
+        eager ones; every shipped layout traces whole. For a GPU: it runs the fixed-size code a
+        GPU needs (:func:`~t3fast.host_syncs.sync_free`), which on the CPU takes 1.7x the eager
+        forecast's time. Returns the model."""
         self._compiled = compiled_forecast(self.pipeline, next(self.parameters()).device, **options)
         return self

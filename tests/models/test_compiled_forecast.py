@@ -35,6 +35,15 @@ def test_the_shipped_forecast_traces_into_one_graph_and_forecasts_as_eager(windo
     _same(compiled.forecast(occ, motion, future_actions=actions), eager.forecast(occ, motion, future_actions=actions))
 
 
+@pytest.mark.parametrize("name", ["wm-small-no-delta", "wm-small-own-frames"])
+def test_the_ablations_trace_into_one_graph_too(windows, name):
+    """The renders that keep the observed static world (decoding only the voxels that can
+    change) and that decode every frame whole."""
+    occ, motion = windows.past_occ[:1], windows.ego_poses[:1, : PRESENT + 1]
+    compiled = t3fast.load_world_model(name).compile_forecast(backend="eager")
+    _same(compiled.forecast(occ, motion), t3fast.load_world_model(name).forecast(occ, motion))
+
+
 def test_load_world_model_compiles_on_request(monkeypatch):
     calls = []
     monkeypatch.setattr(T3Former, "compile_forecast", lambda self, **options: calls.append(options) or self)

@@ -43,7 +43,10 @@ def test_forecast_shapes_and_types():
     torch.testing.assert_close(out.trajectory, out.actions.cumsum(1))
 
 
-def test_every_frame_encoded_in_one_call_as_on_an_accelerator_gives_the_frame_by_frame_planes():
+@pytest.mark.parametrize("per_call", [32, 4])
+def test_frames_encoded_together_as_on_an_accelerator_give_the_frame_by_frame_planes(monkeypatch, per_call):
+    """All six frames in one call, or in calls of four frames and two."""
+    monkeypatch.setattr("t3fast.forecast.encode.FRAMES_PER_CALL", per_call)
     encoder = tiny_world_model().encoder.eval()
     occupancy = torch.stack([random_labels(2, (16, 12, 4), seed=s) for s in range(3)], dim=1)  # [2, 3, X, Y, Z]
     one_call = encode_sequence(encoder, occupancy, frame_by_frame=False)

@@ -208,7 +208,7 @@ class DrawAgents:
             if not compact:
                 frames = labels[:, k].flatten(1)  # [B, N]
                 unseen = frames == IGNORE
-                slot, voxels, count = front_slots(unseen)  # only the unseen voxels' points are built
+                slot, voxels, count = front_slots(unseen)  # the unseen voxels first, then padding
                 points = voxel_queries(poses[:, k].float(), self.decoder.grid, voxels)
                 decoded = self.decoder.predict(future, points, live=count)
                 fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1))

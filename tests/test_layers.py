@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "t3fast"
 
 #: bottom to top; a module may import from its own layer and the ones listed before it
 LAYERS = [
-    {"errors", "paths", "device", "host_syncs", "io"},
+    {"errors", "paths", "device", "device_constants", "host_syncs", "io"},
     {"ops"},
     {"data"},
     # the tracker and box fits read the pose geometry of models.ego_motion; T3Former runs the forecast stages

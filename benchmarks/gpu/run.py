@@ -149,12 +149,12 @@ def _forecast_steps(ctx: Context, d: Path) -> list[Step]:
     """One process per group of modes: a failed CUDA-graph capture or compilation cannot spoil
     the others, and a time-out ends only the last (slowest) group. Compilation takes minutes
     (the six-step rollout is traced whole), so each size compiles in its own process, small first.
-    The batch-1 rows of the shipped and eager groups profile one more call (``profile/``)."""
+    Every row but the paper size's compilation profiles one more call (``profile/``)."""
     groups = {"eager": ("tiny", "eager", 1)} if ctx.quick else {
         "eager": ("shipped,small,paper", "eager,eager-reference", 1), "batch-64": ("shipped", "eager", 64),
         "cuda-graph": ("shipped,small,paper", "cuda-graph", 1), "compile-shipped": ("shipped", "compile", 1),
         "compile-batch-64": ("shipped", "compile", 64), "compile-paper": ("paper", "compile", 1)}
-    profiled = ("eager", "cuda-graph", "compile-shipped")
+    profiled = ("eager", "batch-64", "cuda-graph", "compile-shipped", "compile-batch-64")
     steps = []
     for name, (sizes, modes, batch) in groups.items():
         argv = [PY, f"{HERE}/forecast.py", "--device", ctx.device, "--sizes", sizes, "--modes", modes,

@@ -32,7 +32,6 @@ def made_once(make: Callable[..., T]) -> Callable[..., T]:
     def get(*args: object) -> T:
         return make(*args) if torch.compiler.is_compiling() else kept(*args)
 
-    get.cache_clear = kept.cache_clear  # type: ignore[attr-defined]
     return get
 
 

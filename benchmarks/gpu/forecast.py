@@ -40,7 +40,6 @@ from pathlib import Path
 import torch
 
 MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
-TOP = 30  # kernels (ops) listed per profile
 
 
 def sizes() -> dict:
@@ -140,9 +139,10 @@ def measure(fn, device: torch.device, warmup: int, min_iters: int, max_iters: in
 def profile_call(fn, device: torch.device) -> dict:
     """One call of ``fn`` under ``torch.profiler``: its wall time; on a GPU the kernels it ran
     (count, summed busy time, the ``TOP`` that took longest, by name), on a CPU its ops (by self
-    time)."""
-    from torch.autograd import DeviceType
+    time), as :func:`~t3fast.training.step_profile.op_times` lists them."""
     from torch.profiler import ProfilerActivity, profile
+
+    from t3fast.training.step_profile import TOP, op_times
 
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     sync(device)
@@ -152,18 +152,12 @@ def profile_call(fn, device: torch.device) -> dict:
         sync(device)
         wall = time.perf_counter() - start
     out: dict = {"wall_ms": wall * 1e3}
+    times = op_times(prof, device)
     if device.type == "cuda":
-        by_name: dict[str, list[float]] = {}
-        for event in prof.events():
-            if event.device_type == DeviceType.CUDA:
-                by_name.setdefault(event.name, []).append(event.time_range.elapsed_us() / 1e3)
-        times = [(name, len(t), sum(t)) for name, t in by_name.items()]
         out["kernels"] = sum(n for _, n, _ in times)
         out["gpu_busy_ms"] = sum(ms for _, _, ms in times)
     else:
-        times = [(e.key, e.count, e.self_cpu_time_total / 1e3) for e in prof.key_averages()]
         out["ops"] = sum(n for _, n, _ in times)
-    times.sort(key=lambda t: -t[2])
     out["top"] = [{"name": name[:160], "count": n, "ms": round(ms, 4)} for name, n, ms in times[:TOP]]
     return out
 

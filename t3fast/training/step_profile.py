@@ -24,7 +24,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 PHASES = ("data", "forward", "backward", "optimizer")
 SKIP = 2  # steps run before profiling starts: allocator, cuDNN and autotuning warm-up
-TOP = 30  # ops listed in the summary
+TOP = 30  # ops (kernels on a GPU) listed in a summary
 
 
 class StepProfile:
@@ -80,26 +80,36 @@ class StepProfile:
             torch.cuda.synchronize(self.device)
 
 
-def summarise(prof: profile, steps: int, wall: float, device: torch.device) -> dict:
-    """Per-step figures of a finished profile of ``steps`` steps that took ``wall`` seconds."""
-    averages = prof.key_averages()
-    out: dict = {"steps": steps, "device": str(device), "wall_ms_per_step": wall * 1e3 / steps, "phases": {}}
-    for event in averages:
-        if event.key.startswith("step/"):
-            out["phases"][event.key[5:]] = {"host_ms_per_step": event.cpu_time_total / 1e3 / steps,
-                                           "device_ms_per_step": event.device_time_total / 1e3 / steps}
+def op_times(prof: profile, device: torch.device) -> list[tuple[str, int, float]]:
+    """``(name, calls, milliseconds)`` of a finished profile, longest first: on a GPU its CUDA
+    kernels and their device time, on a CPU its ops and their self time (the phase marks left
+    out)."""
     if device.type == "cuda":
         kernels: dict[str, list[float]] = {}
         for event in prof.events():
             if event.device_type == DeviceType.CUDA:
                 kernels.setdefault(event.name, []).append(event.time_range.elapsed_us() / 1e3)
         times = [(name, len(t), sum(t)) for name, t in kernels.items()]
-        out["kernels_per_step"] = sum(n for _, n, _ in times) / steps
+    else:
+        times = [(e.key, e.count, e.self_cpu_time_total / 1e3) for e in prof.key_averages()
+                 if not e.key.startswith("step/")]
+    return sorted(times, key=lambda t: -t[2])
+
+
+def summarise(prof: profile, steps: int, wall: float, device: torch.device) -> dict:
+    """Per-step figures of a finished profile of ``steps`` steps that took ``wall`` seconds."""
+    out: dict = {"steps": steps, "device": str(device), "wall_ms_per_step": wall * 1e3 / steps, "phases": {}}
+    for event in prof.key_averages():
+        if event.key.startswith("step/"):
+            out["phases"][event.key[5:]] = {"host_ms_per_step": event.cpu_time_total / 1e3 / steps,
+                                           "device_ms_per_step": event.device_time_total / 1e3 / steps}
+    times = op_times(prof, device)
+    calls = sum(n for _, n, _ in times) / steps
+    if device.type == "cuda":
+        out["kernels_per_step"] = calls
         out["gpu_busy_ms_per_step"] = sum(ms for _, _, ms in times) / steps
     else:
-        times = [(e.key, e.count, e.self_cpu_time_total / 1e3) for e in averages if not e.key.startswith("step/")]
-        out["ops_per_step"] = sum(n for _, n, _ in times) / steps
-    times.sort(key=lambda t: -t[2])
+        out["ops_per_step"] = calls
     out["top"] = [{"name": name[:160], "calls_per_step": n / steps, "ms_per_step": round(ms / steps, 4)}
                   for name, n, ms in times[:TOP]]
     return out

@@ -179,7 +179,8 @@ class ResidentAlignedWindows(Dataset):
         first = windows[0]
         self.occ = torch.empty(scenes, frames, *first.occ.shape[1:], dtype=first.occ.dtype, device=device)
         self.poses = torch.empty(scenes, frames, 4, 4, dtype=first.ego_poses.dtype, device=device)
-        self.windows = torch.tensor([windows.locate(i) for i in range(len(windows))], device=device)  # [N, 2]
+        # per window: its scene and first frame [N, 2]
+        self.located = torch.tensor([windows.locate(i) for i in range(len(windows))], device=device)
         items = []
         for i in tqdm(range(len(windows)), desc="windows to the device", unit="window", disable=not progress):
             sample, planes = windows[i], labelled.cache[i].planes
@@ -194,11 +195,11 @@ class ResidentAlignedWindows(Dataset):
         self.future_actions = torch.stack([it[2] for it in items]).to(device)
 
     def __len__(self) -> int:
-        return self.windows.shape[0]
+        return self.located.shape[0]
 
     def __getitems__(self, indices: list[int]) -> SequenceBatch:
-        index = torch.as_tensor(indices, device=self.windows.device)
-        scene, start = self.windows[index].unbind(1)
+        index = torch.as_tensor(indices, device=self.located.device)
+        scene, start = self.located[index].unbind(1)
         frames = start[:, None] + torch.arange(WINDOW, device=start.device)
         return SequenceBatch(occ=self.occ[scene[:, None], frames], planes=self.planes.map(lambda p: p[index].float()),
                              past_actions=self.past_actions[index], future_actions=self.future_actions[index],

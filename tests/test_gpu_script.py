@@ -43,6 +43,9 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
     assert profiled["ops"] > 100 and profiled["top"][0]["ms"] > 0  # on a CPU: the ops, by self time
     ae = json.loads((out / "train_ae" / "result.json").read_text())
     assert ae["world_size"] == 2 and ae["ddp"] and ae["samples_per_s"] > 0
+    wm = json.loads((out / "train_wm" / "result.json").read_text())
+    assert wm["cuda_graph"]["replays"] > 0 and not wm["cuda_graph"]["failures"]  # on a CPU: no graph, the same step
+    assert json.loads((out / "train_wm" / "eager" / "result.json").read_text())["cuda_graph"] is None
 
     text = subprocess.run([sys.executable, "-m", "benchmarks.gpu.report", str(out)], cwd=ROOT, capture_output=True,
                           text=True, check=True, timeout=60).stdout

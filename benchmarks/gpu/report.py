@@ -168,21 +168,30 @@ def forecast_section(out: Path) -> list[str]:
 
 def training_section(out: Path) -> list[str]:
     body = []
-    for stage in ("train_ae", "train_wm"):
+    for stage in ("train_ae", "train_wm", "train_wm/eager"):
         r = _read_json(out / stage / "result.json")
         if r is None:  # killed before rank 0 wrote it: what the trainer had logged
             windows = [e["values"]["samples_per_s"] for e in _read_jsonl(out / stage / "run" / "metrics.jsonl")
                        if e.get("event") == "train"]
-            rate = statistics.median(windows[1:] or windows) if windows else None
-            body.append([f"{stage} (no result.json)", "", "", "", "", f"{len(windows)} windows", _fmt(rate), ""])
+            if windows or stage != "train_wm/eager":
+                rate = statistics.median(windows[1:] or windows) if windows else None
+                body.append([f"{stage} (no result.json)", "", "", "", "", f"{len(windows)} windows", "", _fmt(rate),
+                             ""])
             continue
+        graph = r.get("cuda_graph")
+        graphs = (f"{graph['graphs']} graphs, {graph['replays']} replays"
+                  + (f", failed: {'; '.join(graph['failures'].values())[:80]}" if graph["failures"] else "")
+                  if graph else "no")
         command = " ".join(r["command"][:3])
         body.append([command, f"{r.get('world_size')} x {r.get('device')}", r.get("backend", ""),
-                     str(r.get("amp")), str(r.get("batch_per_process")), str(r.get("steps")),
+                     str(r.get("amp")), str(r.get("batch_per_process")), str(r.get("steps")), graphs,
                      _fmt(r.get("samples_per_s"), ".2f"), _fmt(r.get("peak_allocated_mb"), ".0f")])
-    header = ["command", "processes", "backend", "AMP", "batch / process", "steps", "samples/s", "peak MB (rank 0)"]
-    return _table(header, body, {4, 5, 6, 7}) + [
-        "", "samples/s: median over the logged windows after the first (warm-up), all processes together."
+    header = ["command", "processes", "backend", "AMP", "batch / process", "steps", "CUDA graphs", "samples/s",
+              "peak MB (rank 0)"]
+    return _table(header, body, {4, 5, 7, 8}) + [
+        "", "samples/s: median over the logged windows after the first (warm-up and capture), all processes "
+            "together. CUDA graphs: the steps replayed from graphs (`train.cuda_graph`; on a CPU the same step "
+            "without a graph)."
     ] + profile_lines(out)
 
 

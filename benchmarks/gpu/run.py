@@ -15,7 +15,8 @@ Stages, each with its own time limit and each run whatever happened before it:
   demo      ``t3fast demo`` (what ``make demo`` runs) on the device, its metrics held against the
             committed CPU run's (``benchmarks/results/wm-test-metrics.json``, the same windows)
   train_ae  a timed burst of ``t3fast train-ae --config paper`` under torchrun (NCCL, AMP)
-  train_wm  the same for ``t3fast train-wm --config paper``
+  train_wm  the same for ``t3fast train-wm --config paper``, its steps replayed from CUDA graphs
+            on one process, then a shorter burst of eager steps to hold them against
 
 Everything goes under OUTDIR: one folder per stage with its logs and results, and
 ``summary.json`` / ``summary.md`` saying which stages passed. The exit status is 0 only when
@@ -213,15 +214,17 @@ def _train_overrides(ctx: Context, d: Path) -> list[str]:
     return common + ["train.log_every=5", "train.profile_steps=3"]  # run/profile.json: where a step's time goes
 
 
-def _torchrun(ctx: Context, d: Path, nproc: int, seconds: float, command: list[str]) -> Step:
+def _torchrun(ctx: Context, d: Path, nproc: int, seconds: float, command: list[str], name: str = "torchrun",
+              min_steps: int | None = None) -> Step:
     backend = "nccl" if ctx.cuda else "gloo"
+    min_steps = min_steps or (2 if ctx.quick else 10)
     argv = [PY, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
             f"{HERE}/train_burst.py", "--backend", backend, "--seconds", str(seconds),
-            "--min-steps", "2" if ctx.quick else "10", "--result", str(d / "result.json"), "--", *command]
+            "--min-steps", str(min_steps), "--result", str(d / "result.json"), "--", *command]
     env = {"OMP_NUM_THREADS": "1" if ctx.quick else "4"}
     if ctx.cuda:
         env["NCCL_DEBUG"] = os.environ.get("NCCL_DEBUG", "WARN")
-    return Step("torchrun", argv, env)
+    return Step(name, argv, env)
 
 
 def _train_ae_steps(ctx: Context, d: Path) -> list[Step]:
@@ -242,11 +245,17 @@ def _train_wm_steps(ctx: Context, d: Path) -> list[Step]:
                                           "train.eval_every=0", "train.tensorboard=false",
                                           f"train.device={ctx.device}", f"train.out_dir={ae.parent}", *frames]))
     frames = ["data.frames_per_scene=12"] if ctx.quick else []
-    command = ["train-wm", "--config", config, "--ae", str(ae), *_train_overrides(ctx, d), "data.train_scenes=1",
-               f"data.cache_dir={d / 'cache'}", *frames]
-    # quick: one process (the stage-1 burst already ran two under gloo)
-    steps.append(_torchrun(ctx, d, 1 if ctx.quick else ctx.nproc, 1 if ctx.quick else 30, command))
-    return steps
+    # the paper preset's path (quick: the small Delta forecaster's on it): labelled windows read
+    # from the aligned cache, one 6-step rollout a sample
+    command = ["train-wm", "--config", "small-delta" if ctx.quick else config, "--ae", str(ae), "data.train_scenes=1",
+               f"data.cache_dir={d / 'cache'}", "data.cache_labels=true", "loss.rollout_steps=6", *frames]
+    # its steps replayed from CUDA graphs on one process (quick: the stage-1 burst already ran two
+    # under gloo), then a shorter burst of eager steps on the same cached windows to hold them against
+    graphed = [*command, *_train_overrides(ctx, d), "train.cuda_graph=true"]
+    eager = [*command, *_train_overrides(ctx, d / "eager"), "train.profile_steps=0", "train.cuda_graph=false"]
+    # quick: past the eager warm-up steps and the capture (t3fast.training.graphed_step.WARMUP + 1)
+    return [*steps, _torchrun(ctx, d, 1, 1 if ctx.quick else 30, graphed, min_steps=6 if ctx.quick else None),
+            _torchrun(ctx, d / "eager", 1, 1 if ctx.quick else 15, eager, name="eager")]
 
 
 def _check_train(ctx: Context, d: Path) -> tuple[bool, str]:
@@ -257,8 +266,18 @@ def _check_train(ctx: Context, d: Path) -> tuple[bool, str]:
     rate = r.get("samples_per_s")
     if not rate:
         return False, f"no throughput logged ({r.get('steps')} steps)"
-    return r.get("returncode") == 0, (f"{rate:.2f} samples/s, {r.get('steps')} steps, world {r.get('world_size')} "
-                                      f"{r.get('backend')}, AMP {r.get('amp')}")
+    detail = (f"{rate:.2f} samples/s, {r.get('steps')} steps, world {r.get('world_size')} {r.get('backend')}, "
+              f"AMP {r.get('amp')}")
+    graph = r.get("cuda_graph")
+    if graph is not None:
+        failed = "; ".join(f"{k}: {v}" for k, v in graph["failures"].items())
+        detail += f", {graph['graphs']} CUDA graphs, {graph['replays']} replays"
+        detail += f" (failed: {failed})" if failed else ""
+    eager = d / "eager" / "result.json"
+    if eager.is_file():
+        rate = json.loads(eager.read_text()).get("samples_per_s")
+        detail += f"; eager {rate:.2f} samples/s" if rate else "; eager: no throughput logged"
+    return r.get("returncode") == 0, detail
 
 
 def _check_json(name: str) -> Callable[[Context, Path], tuple[bool, str]]:
@@ -283,7 +302,7 @@ STAGES = [
     Stage("forecast", "whole forecast", 270, 60, _forecast_steps, _check_forecast),
     Stage("demo", "t3fast demo", 240, 90, _demo_steps, _check_demo),
     Stage("train_ae", "train-ae burst", 80, 45, _train_ae_steps, _check_train),
-    Stage("train_wm", "train-wm burst", 100, 60, _train_wm_steps, _check_train),
+    Stage("train_wm", "train-wm burst", 130, 70, _train_wm_steps, _check_train),
 ]
 
 

@@ -169,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                 batch_per_process=trainer.cfg.batch_size,
                 amp=str(amp).replace("torch.", "") if amp is not None else "off",
                 ddp=type(trainer.model).__name__ == "DistributedDataParallel",
+                cuda_graph=trainer.graphed.report() if getattr(trainer, "graphed", None) is not None else None,
                 out_dir=str(trainer.out_dir),
             )
             result.update(_throughput(Path(trainer.out_dir) / "metrics.jsonl"))

@@ -200,6 +200,11 @@ def first_nonfinite(tensors: Mapping[str, Any]) -> str | None:
     floats = {k: t for k, t in tensors.items() if isinstance(t, torch.Tensor) and t.is_floating_point()}
     if not floats:
         return None
+    # a NaN or an infinity makes a tensor's norm one: a few multi-tensor kernels for all of them
+    # (per tensor, two ops each: thousands of launches a training step on a GPU)
+    norms = torch._foreach_norm([t.detach() for t in floats.values()])
+    if bool(torch.stack([n.float() for n in norms]).isfinite().all()):
+        return None
     finite = torch.stack([torch.isfinite(t).all() for t in floats.values()])
     if bool(finite.all()):
         return None

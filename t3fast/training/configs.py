@@ -69,6 +69,9 @@ class TrainConfig:
     overwrite: bool = False  # replace the run already in out_dir (a new run needs an empty out_dir)
     device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu"
     profile_steps: int = 0  # profile this many steps (after two) into out_dir/profile.json; 0: none
+    # each step replayed as one CUDA graph (t3fast.training.graphed_step): the task must name its
+    # steps' host-side choices; off with several processes or float16 AMP
+    cuda_graph: bool = False
 
     def __post_init__(self) -> None:
         """Reject counts and rates that would crash, do nothing or train backwards (e.g. a zero
@@ -211,6 +214,10 @@ class Stage2Config:
 
     def __post_init__(self) -> None:
         _weights("", self, ("decoder_lr_scale", "planner_lr_scale"), "0 freezes that part")
+        if self.train.cuda_graph and self.data.latent_cache and not self.data.cache_labels:
+            raise ConfigError("train.cuda_graph needs labelled windows (data.cache_labels=true, or "
+                              "data.latent_cache=false): a step on the cached latent windows mirrors them and "
+                              "drops route commands by random choices made on the host")
 
 
 @dataclass

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from t3fast.data.classes import FREE, GRID_SHAPE, IGNORE
+from t3fast.device_constants import device_constant
 from t3fast.host_syncs import reads_host
 
 __all__ = ["near_surface_free", "point_voxels", "sample_changed_points", "sample_query_points", "voxel_points"]
@@ -17,7 +18,7 @@ __all__ = ["near_surface_free", "point_voxels", "sample_changed_points", "sample
 
 def voxel_points(indices: torch.Tensor, grid: tuple[int, int, int] = GRID_SHAPE) -> torch.Tensor:
     """Voxel indices ``[..., 3]`` (x, y, z) -> centre coordinates ``[..., 3]`` float32 in ``(-1, 1)``."""
-    sizes = torch.tensor(grid, dtype=torch.float32, device=indices.device)
+    sizes = device_constant(grid, torch.float32, indices.device)
     return (2.0 * indices.float() + 1.0) / sizes - 1.0
 
 
@@ -26,7 +27,7 @@ def point_voxels(points: torch.Tensor, grid: tuple[int, int, int] = GRID_SHAPE) 
 
     Inverse of :func:`voxel_points`; points on the border are clamped into the grid.
     """
-    sizes = torch.tensor(grid, dtype=torch.float32, device=points.device)
+    sizes = device_constant(grid, torch.float32, points.device)
     idx = torch.floor((points.float() + 1.0) * 0.5 * sizes).long()
     return torch.minimum(idx.clamp(min=0), sizes.long() - 1)
 

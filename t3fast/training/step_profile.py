@@ -3,7 +3,8 @@
 
 The trainer marks each step's phases (``data``: the next batch and its copy to the device;
 ``forward``: the task's loss; ``backward``; ``optimizer``: the logged values read, clipping and
-the optimiser step). The summary gives per step the wall time, each phase's host time and, on a
+the optimiser step; with ``train.cuda_graph``, ``step``: all but the data, replayed from a
+graph). The summary gives per step the wall time, each phase's host time and, on a
 GPU, the device time of the kernels it launched, the kernels launched and the GPU's busy time,
 and the ops (CUDA kernels on a GPU) that took most of it::
 
@@ -22,17 +23,17 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile, record_function
 
-PHASES = ("data", "forward", "backward", "optimizer")
+PHASES = ("data", "forward", "backward", "optimizer", "step")
 SKIP = 2  # steps run before profiling starts: allocator, cuDNN and autotuning warm-up
 TOP = 30  # ops (kernels on a GPU) listed in a summary
 
 
 class StepProfile:
-    """Profiles ``steps`` training steps after :data:`SKIP`; :meth:`phase` marks a phase of the
+    """Profiles ``steps`` training steps after ``skip``; :meth:`phase` marks a phase of the
     current step, :meth:`step_done` ends it. Writes ``path`` once the profiled steps are done."""
 
-    def __init__(self, path: Path, steps: int, device: torch.device) -> None:
-        self.path, self.steps, self.device = path, steps, device
+    def __init__(self, path: Path, steps: int, device: torch.device, skip: int = SKIP) -> None:
+        self.path, self.steps, self.device, self.skip = path, steps, device, skip
         self._seen = 0
         self._profile: profile | None = None
         self._start = 0.0
@@ -52,7 +53,7 @@ class StepProfile:
 
     def step_begin(self) -> None:
         """Start profiling before the first profiled step."""
-        if self._seen == SKIP and self._profile is None and self.steps:
+        if self._seen == self.skip and self._profile is None and self.steps:
             activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if self.device.type == "cuda" else [])
             self._sync()
             self._profile = profile(activities=activities)
@@ -62,7 +63,7 @@ class StepProfile:
     def step_done(self) -> None:
         """End a step; after the last profiled one, stop and write the summary."""
         self._seen += 1
-        if self._profile is not None and self._seen == SKIP + self.steps:
+        if self._profile is not None and self._seen == self.skip + self.steps:
             self._sync()
             wall = time.perf_counter() - self._start
             self._profile.__exit__(None, None, None)

@@ -33,7 +33,12 @@ class Task(Protocol):
 
     Optional: ``config_dict() -> dict`` of plain values (numbers, strings, lists, dicts), stored in
     checkpoints under ``state["config"]["task"]``; ``lr_scales() -> {submodule name: factor}``,
-    learning-rate multipliers of parts of the model (e.g. a decoder being fine-tuned).
+    learning-rate multipliers of parts of the model (e.g. a decoder being fine-tuned);
+    ``step_variant() -> hashable``, for ``train.cuda_graph``: draws the host-side choices of the
+    next training step (e.g. where a rollout starts), which that step then uses, and returns
+    them. Steps with the same variant and batch shapes must run the same kernels, read nothing
+    back on the host and copy no host data to the device: the trainer replays one CUDA graph
+    per variant (:mod:`t3fast.training.graphed_step`).
     """
 
     def build_model(self) -> nn.Module: ...

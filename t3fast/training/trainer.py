@@ -46,7 +46,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
 from t3fast.device import require_device
-from t3fast.errors import CheckpointError, DivergenceError
+from t3fast.errors import CheckpointError, ConfigError, DivergenceError
 from t3fast.io.checkpoint import first_nonfinite, save_checkpoint
 from t3fast.io.config import config_to_dict
 from t3fast.training.batch_sampler import ResumableBatchSampler
@@ -62,13 +62,21 @@ from t3fast.training.distributed import (
     rank,
     world_size,
 )
+from t3fast.training.graphed_step import (
+    WARMUP,
+    GraphedStep,
+    graph_optimizer,
+    load_optimizer_state,
+    portable_optimizer_state,
+    portable_scheduler_state,
+)
 from t3fast.training.interrupt import StopRequest, ignore_sigint
 from t3fast.training.metrics_log import MetricsLog
 from t3fast.training.param_groups import param_groups
 from t3fast.training.random_state import derive_seed, preserved_rng, rng_state, seed_everything, set_rng_state
 from t3fast.training.run_dir import check_out_dir, drop_replaced, restore, set_aside
 from t3fast.training.schedule import warmup_cosine
-from t3fast.training.step_profile import StepProfile
+from t3fast.training.step_profile import SKIP, StepProfile
 from t3fast.training.task import Task
 
 log = logging.getLogger(__name__)
@@ -101,12 +109,18 @@ class Trainer:
         if self.world > 1:
             ids = [self.device.index] if self.device.type == "cuda" else None
             self.model = DistributedDataParallel(self.module, device_ids=ids)
-        scales = task.lr_scales() if hasattr(task, "lr_scales") else None
-        self.optimizer = torch.optim.AdamW(param_groups(self.module, cfg.weight_decay, cfg.lr, scales), lr=cfg.lr)
-        schedule = warmup_cosine(cfg.steps, min(cfg.warmup_steps, cfg.steps), cfg.lr, cfg.min_lr)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, schedule)
         self.amp_dtype = _amp_dtype(cfg.amp, self.device)
         self.scaler = torch.amp.GradScaler(self.device.type, enabled=self.amp_dtype == torch.float16)
+        graphed = self._graphs_wanted()
+        scales = task.lr_scales() if hasattr(task, "lr_scales") else None
+        groups = param_groups(self.module, cfg.weight_decay, cfg.lr, scales)
+        self.optimizer = (graph_optimizer(groups, cfg.lr, self.device) if graphed
+                          else torch.optim.AdamW(groups, lr=cfg.lr))
+        schedule = warmup_cosine(cfg.steps, min(cfg.warmup_steps, cfg.steps), cfg.lr, cfg.min_lr)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, schedule)
+        self.scheduler.base_lrs = [float(lr) for lr in self.scheduler.base_lrs]  # rates written without a read
+        #: the whole step replayed from a CUDA graph (train.cuda_graph), else None
+        self.graphed = GraphedStep(self._whole_step, self.device) if graphed else None
 
         dataset = task.train_dataset()
         self.sampler = ResumableBatchSampler(len(dataset), cfg.batch_size, cfg.seed, self.rank, self.world)
@@ -130,7 +144,9 @@ class Trainer:
         self._last_eval_step = self._last_ckpt_step = -1
         self._reset_window()
         self._log = MetricsLog(self.out_dir, is_main(), cfg.tensorboard)
-        self._profile = StepProfile(self.out_dir / "profile.json", cfg.profile_steps if is_main() else 0, self.device)
+        # a graphed run profiles replayed steps: after each variant's eager warm-up and capture
+        self._profile = StepProfile(self.out_dir / "profile.json", cfg.profile_steps if is_main() else 0, self.device,
+                                    SKIP + (WARMUP + 1 if graphed else 0))
         self._maybe_resume()
         # overwrite: the old run moves aside only now that the new one is set up (a missing data
         # file, a bad init_from or a model too large leaves it untouched); see _save and fit
@@ -185,17 +201,44 @@ class Trainer:
             self._profile.close()
             self._log.close()
 
+    def _graphs_wanted(self) -> bool:
+        """Whether the steps run from CUDA graphs (``train.cuda_graph``; on other devices, the
+        same step without a graph): the task must name its steps' host-side choices."""
+        if not self.cfg.cuda_graph:
+            return False
+        if not callable(getattr(self.task, "step_variant", None)):
+            raise ConfigError(f"train.cuda_graph: {type(self.task).__name__} has no step_variant (the host-side "
+                              "choices of a step), so its steps cannot be replayed from a graph; set "
+                              "train.cuda_graph=false")
+        if self.world > 1:
+            log.warning("train.cuda_graph is off with %d processes (DistributedDataParallel): the steps run eagerly",
+                        self.world)
+            return False
+        if self.scaler.is_enabled():
+            log.warning("train.cuda_graph is off with float16 AMP (its loss scaler reads the device at every step): "
+                        "the steps run eagerly")
+            return False
+        return True
+
+    def _autocast(self) -> torch.autocast:
+        return torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None)
+
     def _train_step(self, batch: Any) -> None:
         with self._profile.phase("data"):
             batch = _to_device(batch, self.device)
-        self.optimizer.zero_grad(set_to_none=True)
-        with self._profile.phase("forward"), torch.autocast(self.device.type, dtype=self.amp_dtype,
-                                                             enabled=self.amp_dtype is not None):
-            loss, values = self.task.training_step(self.model, batch)
-        with self._profile.phase("backward"):
-            self.scaler.scale(loss).backward()
-        with self._profile.phase("optimizer"):
-            logs = self._update(loss, values)
+        if self.graphed is not None:
+            with self._profile.phase("step"):
+                terms = self.graphed(batch, self.task.step_variant())
+            logs = self._read_and_check(terms)  # the graph changed no weight if the loss or a gradient was not finite
+            self._advance(logs)
+        else:
+            self.optimizer.zero_grad(set_to_none=True)
+            with self._profile.phase("forward"), self._autocast():
+                loss, values = self.task.training_step(self.model, batch)
+            with self._profile.phase("backward"):
+                self.scaler.scale(loss).backward()
+            with self._profile.phase("optimizer"):
+                logs = self._update(loss, values)
         for k, v in logs.items():
             self._sums[k] += v
         self._count += 1
@@ -208,16 +251,46 @@ class Trainer:
         if self.cfg.grad_clip:  # None or 0: no clipping
             self.scaler.unscale_(self.optimizer)  # clip the true gradients, not the fp16-scaled ones
             terms["grad_norm"] = nn.utils.clip_grad_norm_(self.module.parameters(), self.cfg.grad_clip)
-        logs = read_values(terms)
         # before the optimiser step: the weights stay those of the last good step
-        self._check_loss({k: v for k, v in logs.items() if k != "grad_norm"})
-        logs["lr"] = self.optimizer.param_groups[0]["lr"]  # the rate this step uses
+        logs = self._read_and_check(terms)
         self.scaler.step(self.optimizer)
         self.scaler.update()
+        self._advance(logs)
+        return logs
+
+    def _whole_step(self, batch: Any) -> dict[str, Tensor]:
+        """A step with nothing read on the host, what a CUDA graph holds: the loss, its backward,
+        clipping and the fused optimiser step, which changes no weight when the loss or the
+        gradient norm is not finite. Returns the values to log."""
+        self.optimizer.zero_grad(set_to_none=True)  # the graph allocates the gradients it writes
+        with self._autocast():
+            loss, values = self.task.training_step(self.model, batch)
+        loss.backward()
+        params = list(self._trainable.values())
+        if self.cfg.grad_clip:
+            norm = nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        else:
+            norm = nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])
+        self.optimizer.found_inf = (~(loss.detach().isfinite() & norm.isfinite())).float()
+        try:
+            self.optimizer.step()
+        finally:
+            del self.optimizer.found_inf
+        terms = {"loss": loss.detach(), **values}
+        return terms | ({"grad_norm": norm} if self.cfg.grad_clip else {})
+
+    def _read_and_check(self, terms: dict[str, Tensor | float]) -> dict[str, float]:
+        """The step's values read at once; stop if the loss is not finite."""
+        logs = read_values(terms)
+        self._check_loss({k: v for k, v in logs.items() if k != "grad_norm"})
+        logs["lr"] = float(self.optimizer.param_groups[0]["lr"])  # the rate this step uses
+        return logs
+
+    def _advance(self, logs: dict[str, float]) -> None:
+        """After the optimiser step: the next rate, the step count, the weights checked."""
         self.scheduler.step()
         self.step += 1
         self._check_weights(logs["loss"])
-        return logs
 
     def _check_loss(self, logs: dict[str, float]) -> None:
         """Stop, on every rank at once, at the first step whose loss is not finite, naming the terms."""
@@ -323,8 +396,8 @@ class Trainer:
         config_dict = getattr(self.task, "config_dict", None)
         return {
             "model": self.module.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
+            "optimizer": portable_optimizer_state(self.optimizer),
+            "scheduler": portable_scheduler_state(self.scheduler),
             "scaler": self.scaler.state_dict(),
             "step": self.step,
             "best_score": self.best_score,
@@ -341,8 +414,8 @@ class Trainer:
             return
         state = read_training_checkpoint(path)
         load_weights(self.module, state["model"], path)
-        try:
-            self.optimizer.load_state_dict(state["optimizer"])  # before the scheduler: it holds the current lr
+        try:  # before the scheduler: it holds the current lr
+            load_optimizer_state(self.optimizer, state["optimizer"], self.device)
         except (ValueError, KeyError, TypeError) as exc:  # e.g. other parameter groups (lr_scales, frozen parts)
             raise CheckpointError(f"{path}: its optimizer state does not fit this run's ({exc}): it was written "
                                   "by a run with other training settings") from exc

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,6 +24,8 @@ from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
 from t3fast.pretrained import export_weights, load_world_model
 from t3fast.training.configs import WorldLossConfig
+from t3fast.training.graphed_step import WARMUP
+from t3fast.training.trainer import Trainer
 from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.latent_cache import (
     LabelledAlignedWindows,
@@ -416,3 +419,54 @@ def test_cached_windows_held_in_device_memory_give_the_batches_read_from_disk(wo
         assert torch.equal(a, b)
     loader = torch.utils.data.DataLoader(resident, batch_sampler=[order], collate_fn=task.collate)
     assert torch.equal(next(iter(loader)).occ, want.occ)  # the trainer's loader gathers whole batches
+
+
+def test_step_variant_draws_the_rollout_start_the_next_step_uses(monkeypatch):
+    """``train.cuda_graph`` replays one graph per rollout start: the trainer draws it first
+    (``step_variant``) and the step must use that start, not draw another."""
+    cfg = preset("wm-small-delta")
+    cfg.loss = replace(cfg.loss, rollout_steps=1)
+    task = WorldModelTask.__new__(WorldModelTask)  # the step only: no stage-1 checkpoint to read
+    task.cfg = cfg
+    used = []
+    monkeypatch.setattr("t3fast.training.world_model.task.rollout_loss",
+                        lambda model, planes, occ, past, future, first, *rest: used.append(first) or (first, {}))
+    model = SimpleNamespace(ego_aligned=False, reads_command=False)
+    batch = SequenceBatch(torch.zeros(1, 11, 2, 2, 2), Triplane(torch.zeros(1), None, None), torch.zeros(1, 4, 2),
+                          torch.zeros(1, 6, 2), torch.eye(4).expand(1, 11, 4, 4))
+    torch.manual_seed(3)
+    drawn = []
+    for _ in range(12):
+        drawn.append(task.step_variant())
+        task.training_step(model, batch)
+    assert used == drawn and len(set(drawn)) > 1 and set(drawn) <= set(range(6))
+    task.training_step(model, batch)  # without a variant drawn, the step draws its own
+    assert len(used) == 13
+
+
+def test_a_graphed_stage2_run_replays_a_step_that_reads_nothing_on_the_host(world_ckpt, tmp_path, device):
+    """``train.cuda_graph`` on the cached labelled windows (the paper preset's path): the trainer
+    runs the warm-up steps eagerly, then replays the step; the step it captures reads nothing on
+    the host and makes no tensor from host data (as on a GPU: a capture holds neither)."""
+    cfg = preset("wm-small-delta")
+    cfg.autoencoder_ckpt = str(world_ckpt.parent.parent / "ae" / "last.pt")
+    cfg.model = replace(cfg.model, forecaster_widths=(8, 8, 8), scales=3, max_tokens=64, planner_widths=(8, 8, 8, 8),
+                        d_act=20)
+    cfg.data = replace(cfg.data, train_scenes=1, frames_per_scene=12, stride=1, cache_dir=str(tmp_path / "cache"),
+                       cache_labels=True)
+    cfg.loss = replace(cfg.loss, num_occupied=300, num_near_free=100, num_far_free=50, num_changed=50,
+                       rollout_steps=6, pushforward=True)  # the paper preset's: one start, one graph
+    cfg.train = replace(cfg.train, steps=WARMUP + 2, batch_size=1, eval_every=0, ckpt_every=0, log_every=1,
+                        tensorboard=False, device=device, out_dir=str(tmp_path / "run"), cuda_graph=True)
+    trainer = Trainer(WorldModelTask(cfg), cfg.train)
+    trainer.fit()
+    assert trainer.graphed.report() == {"graphs": 1, "replays": 2, "eager_steps": WARMUP, "failures": {}}
+    batch = next(iter(trainer.loader)).to(device)
+    trainer.task.cfg.loss = replace(cfg.loss, rollout_steps=2)  # a later start: history pushed forward
+    while trainer.task.step_variant() == 0:
+        pass
+    with sync_free(), SyncCounter() as counter:
+        terms = trainer.graphed.body(batch)
+    assert counter.total == 0, counter.by_caller
+    assert not counter.host_data, counter.host_data
+    assert all(torch.isfinite(v) for v in terms.values()) and set(terms) >= {"loss", "occupancy", "grad_norm"}

@@ -65,6 +65,8 @@ def build_world_model(cfg: Stage2Config) -> RolloutModel | FlowMotionModel:
 class WorldModelTask:
     """Trains :class:`T3Former` (stage 2); scores the Avg mIoU of full rollouts on val windows."""
 
+    _next_start: int | None = None  # drawn by step_variant for the next step
+
     def __init__(self, cfg: Stage2Config):
         self.cfg = copy.deepcopy(cfg)
         # read once: config and weights; a world model's checkpoint (e.g. a shipped one) lends its
@@ -143,10 +145,10 @@ class WorldModelTask:
                 core.reads_command and self.cfg.planner_lr_scale > 0) else None
             flipped = random_flips(batch) if self.cfg.data.latent_flips else batch
             if self.cfg.model.forecaster != "flow":
-                return delta_rollout_loss(model, flipped, self.cfg.loss, self._rollout_start())
+                return delta_rollout_loss(model, flipped, self.cfg.loss, self._take_start())
             return motion_loss(model, flipped, self.cfg.loss, plan=plan)
         steps = self.cfg.loss.rollout_steps
-        first = self._rollout_start()
+        first = self._take_start()
         occ = batch.occ
         if core.ego_aligned and batch.planes is not None:  # encoded once (the encoder is frozen): read
             planes, occ = batch.planes, moved_window(batch.occ, batch.ego_poses)
@@ -156,6 +158,17 @@ class WorldModelTask:
         else:
             planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
         return rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, steps, self.cfg.loss)
+
+    def step_variant(self) -> int:
+        """Draws the next step's rollout start, which that step uses (``train.cuda_graph``
+        replays one graph per start; see :class:`~t3fast.training.task.Task`)."""
+        self._next_start = self._rollout_start()
+        return self._next_start
+
+    def _take_start(self) -> int:
+        """This step's rollout start: the one :meth:`step_variant` drew for it, else a new one."""
+        first, self._next_start = self._next_start, None
+        return self._rollout_start() if first is None else first
 
     def _rollout_start(self) -> int:
         """A random future step for a rollout of ``loss.rollout_steps`` steps to start at."""

@@ -34,7 +34,15 @@ import torch
 from torch import Tensor
 
 from t3fast import ops
-from t3fast.agents.tracker import agent_levels, cell_metres, follow_agents, frame_agents, slot_values
+from t3fast.agents.tracker import (
+    agent_levels,
+    cell_metres,
+    follow_agents,
+    frame_agents,
+    frame_of,
+    slot_sums,
+    slot_values,
+)
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, VOXEL_SIZE
 
 MIN_FIT_IOU = 0.5  # footprint IoU over the agent's frames under which it is not drawn as a box
@@ -89,21 +97,27 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
 
     Args:
         frames: labels ``[T, X, Y, Z]`` of the past frames and the present (last), each in its
-            own ego frame.
-        poses: their planar poses ``[T, 3]`` in the present frame (the last is zero).
+            own ego frame; with ``slots``, the frames of several windows may come at once
+            (``[..., T, X, Y, Z]``: every result then has the leading dims too).
+        poses: their planar poses ``[..., T, 3]`` in the present frame (the last is zero).
         slots: the agents' slots per frame (:func:`~t3fast.agents.tracker.frame_agents`; None:
             as many as the frame holds, counted on the host).
     Returns:
         the present's agents (:func:`~t3fast.agents.tracker.frame_agents`) and their
         :class:`AgentBoxes` (one per slot; an empty slot is not drawn).
     """
-    if frames.dim() != 4 or poses.shape != (frames.shape[0], 3):
-        raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3], got "
-                         f"{list(frames.shape)} and {list(poses.shape)}")
+    lead = frames.shape[:-4]
+    if frames.dim() < 4 or poses.shape != (*frames.shape[:-3], 3) or (lead and slots is None):
+        raise ValueError(f"fit_agent_boxes: frames must be [T, X, Y, Z] and poses [T, 3] (with slots, both may have "
+                         f"leading dims), got {list(frames.shape)} and {list(poses.shape)}")
     poses = poses.to(frames.device, torch.float64)
-    agents = [frame_agents(f, AGENT_CLASSES, slots) for f in frames]
+    if slots is None:
+        agents = [frame_agents(f, AGENT_CLASSES) for f in frames]
+    else:  # every frame in one call
+        every = frame_agents(frames, AGENT_CLASSES, slots)
+        agents = [frame_of(every, t, len(lead)) for t in range(frames.shape[-4])]
     now = agents[-1]
-    n = now["cls"].shape[0]
+    n = now["cls"].shape[-1]
     empty = poses.new_zeros(n)
     if n == 0:
         return now, AgentBoxes(empty.view(0, 2), empty.view(0, 2), empty, empty, empty, empty.long(),
@@ -115,48 +129,55 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
     offset = now["columns"].double() - slot_values(now["centroid"], owner)
     spread = _per_slot_max(offset.norm(dim=-1), owner, n)
     # start: the present centroid, the last step's velocity, the principal axis and extents
-    centre = cell_metres(now["centroid"], poses[-1])
+    centre = cell_metres(now["centroid"], poses[..., -1:, :])
     velocity = torch.zeros_like(centre)
-    if match.shape[1] > 1:
-        velocity = torch.where(match[:, -2:-1] >= 0, centre - cell_metres(found[:, -2], poses[-2]), velocity)
+    if match.shape[-1] > 1:
+        velocity = torch.where(match[..., -2:-1] >= 0, centre - cell_metres(found[..., -2, :], poses[..., -2:-1, :]),
+                               velocity)
     spread_m = offset * VOXEL_SIZE
-    cov = poses.new_zeros(n + 1, 2, 2).index_add_(0, owner, spread_m[:, :, None] * spread_m[:, None, :])[:n]
+    cov = slot_sums(spread_m[..., :, None] * spread_m[..., None, :], owner, n)
     axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64, device=cov.device))[1][..., 1]
     column_axis = slot_values(axis, owner)
     along = (spread_m * column_axis).sum(-1).abs()
-    across = (spread_m[:, 1] * column_axis[:, 0] - spread_m[:, 0] * column_axis[:, 1]).abs()
+    across = (spread_m[..., 1] * column_axis[..., 0] - spread_m[..., 0] * column_axis[..., 1]).abs()
     length = _per_slot_max(along, owner, n) * 2 + VOXEL_SIZE
     width = _per_slot_max(across, owner, n) * 2 + VOXEL_SIZE
-    start = torch.cat([centre, velocity, torch.atan2(axis[:, 1], axis[:, 0])[:, None], length.log()[:, None],
-                       width.log()[:, None]], 1)
+    start = torch.cat([centre, velocity, torch.atan2(axis[..., 1], axis[..., 0])[..., None], length.log()[..., None],
+                       width.log()[..., None]], -1)
     # farther: merged agents (a queue, a truck and its trailer), not fitted
     reach = torch.where(now["valid"] & (spread + 3 <= MAX_REACH), spread + 3, 0.0)
-    params, iou = ops.box_fit(torch.stack([a["ids"] for a in agents])[None], match[None], found[None], poses[None],
-                              start[None], reach[None], GRID_LOWER[:2], VOXEL_SIZE, math.ceil(MAX_REACH), NEAR,
-                              iters, FIT_LR, SOFTNESS, ACCEL_PRIOR)
-    params, iou = params[0], iou[0]
-    centre, velocity, yaw = params[:, :2], params[:, 2:4], params[:, 4]
-    length, width = params[:, 5].exp(), params[:, 6].exp()
+    windows = (-1,) if lead else (1,)  # the fit's batch of windows
+    ids = torch.stack([a["ids"] for a in agents], -3)
+    params, iou = ops.box_fit(*(t.reshape(*windows, *t.shape[len(lead):]) for t in (ids, match, found, poses, start,
+                                                                                      reach)),
+                              GRID_LOWER[:2], VOXEL_SIZE, math.ceil(MAX_REACH), NEAR, iters, FIT_LR, SOFTNESS,
+                              ACCEL_PRIOR)
+    params, iou = params.view(*lead, n, -1), iou.view(*lead, n)
+    centre, velocity, yaw = params[..., :2], params[..., 2:4], params[..., 4]
+    length, width = params[..., 5].exp(), params[..., 6].exp()
     votes = now["votes"]
-    drawn = (iou >= MIN_FIT_IOU) & (votes.max(1).values == votes.sum(1)) & ((match >= 0).sum(1) >= 2)
+    drawn = (iou >= MIN_FIT_IOU) & (votes.max(-1).values == votes.sum(-1)) & ((match >= 0).sum(-1) >= 2)
     return now, AgentBoxes(centre, velocity, yaw, length, width, *agent_levels(now), now["cls"], drawn & now["valid"],
-                           cell_metres(found, poses))
+                           cell_metres(found, poses[..., None, :, :]))
 
 
 def _per_slot_max(values: Tensor, owner: Tensor, slots: int) -> Tensor:
-    """The largest of per-column ``values`` ``[N]`` over each slot's columns (``owner``, the
-    ``column_slot`` of :func:`~t3fast.agents.tracker.frame_agents`; at least 0): ``[slots]``."""
-    return values.new_zeros(slots + 1).scatter_reduce_(0, owner, values, "amax", include_self=True)[:slots]
+    """The largest of per-column ``values`` ``[..., N]`` over each slot's columns (``owner``, the
+    ``column_slot`` of :func:`~t3fast.agents.tracker.frame_agents`; at least 0): ``[..., slots]``."""
+    return values.new_zeros(*owner.shape[:-1], slots + 1).scatter_reduce_(-1, owner, values, "amax",
+                                                                          include_self=True)[..., :slots]
 
 
 def _centroids(agents: list[dict[str, Tensor]], match: Tensor) -> Tensor:
     """Each followed agent's column centroid in every frame (:func:`follow_agents`' ``match``
-    ``[n, T]``), in that frame's cells: ``[n, T, 2]``, NaN where it was not found."""
+    ``[..., n, T]``), in that frame's cells: ``[..., n, T, 2]``, NaN where it was not found."""
     found = []
     for t, frame in enumerate(agents):
-        centroid = torch.cat([frame["centroid"], frame["centroid"].new_full((1, 2), math.nan)])  # last: not found
-        found.append(centroid[torch.where(match[:, t] >= 0, match[:, t], centroid.shape[0] - 1)])
-    return torch.stack(found, 1)
+        centroid = frame["centroid"]  # and a last slot: not found
+        centroid = torch.cat([centroid, centroid.new_full((*centroid.shape[:-2], 1, 2), math.nan)], -2)
+        index = torch.where(match[..., t] >= 0, match[..., t], centroid.shape[-2] - 1)
+        found.append(torch.take_along_dim(centroid, index[..., None], dim=-2))
+    return torch.stack(found, -2)
 
 
 def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor, width: Tensor, bottom: Tensor,

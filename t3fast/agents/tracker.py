@@ -17,7 +17,9 @@ with its majority class (:func:`frame_agents`). Two ways of matching them back i
 A frame's agents are records of ``n`` slots: on the CPU exactly the frame's agents (their count
 read on the host, the per-agent sums over their columns alone); on a GPU (or under
 :func:`~t3fast.host_syncs.sync_free`) :data:`AGENT_SLOTS` fixed slots, empty ones marked not
-``valid``, the sums over every column: no host read, the same results.
+``valid``, the sums over every column: no host read, the same results. Fixed slots also let the
+frames of every window of a batch go through in one call (records with leading dims ``[...]``),
+so that a batch launches about as many kernels as one window.
 """
 
 from __future__ import annotations
@@ -57,6 +59,8 @@ def frame_agents(frame: Tensor, classes: Tensor | Sequence[int], slots: int | No
     """The agents of a frame ``[X, Y, Z]``: the connected BEV components of the columns holding an
     agent voxel (``classes``), in ``n`` slots: the frame's count (read on the host) with
     ``slots`` None, else ``slots`` (components beyond them are not agents; :func:`agent_slots`).
+    With ``slots``, ``frame`` may have leading dims ``[..., X, Y, Z]`` (the frames of several
+    windows at once), which every result but ``columns`` then has too.
 
     Returns:
         ``ids`` ``[X, Y]`` int64 (0 off the agents, else 1 + slot), ``mask`` ``[X, Y, Z]`` bool
@@ -65,93 +69,123 @@ def frame_agents(frame: Tensor, classes: Tensor | Sequence[int], slots: int | No
         class) and its column centroid ``centroid`` ``[n, 2]`` (cells; 0 where not valid); and
         the ``columns`` ``[N, 2]`` (row-major) per-agent sums run over with their
         ``column_slot`` ``[N]``: the agents' columns, found on the host where it is read
-        (:func:`~t3fast.host_syncs.reads_host`), else every column, those off the agents in
-        slot n.
+        (:func:`~t3fast.host_syncs.reads_host`) for one frame, else every column, those off the
+        agents in slot n.
     """
     is_agent = in_classes(frame, classes)
-    ids, count = ops.bev_components(is_agent.any(-1)[None])
-    ids, count = ids[0], count[0]
+    lead, (nx, ny) = frame.shape[:-3], frame.shape[-3:-1]
+    ids, count = ops.bev_components(is_agent.any(-1).reshape(-1, nx, ny))
+    ids, count = ids.view(*lead, nx, ny), count.view(lead)
     if slots is None:
+        if lead:
+            raise ValueError(f"frame_agents: frames {list(frame.shape)} need fixed slots (one frame is [X, Y, Z])")
         slots = int(count)
         valid = torch.ones(slots, dtype=torch.bool, device=frame.device)
     else:
         ids = torch.where(ids > slots, 0, ids)
         is_agent &= (ids > 0)[..., None]
-        valid = torch.arange(slots, device=frame.device) < count
-    if reads_host(frame.device):  # the agents' columns, found on the host: a few percent of the frame
+        valid = torch.arange(slots, device=frame.device) < count[..., None]
+    if reads_host(frame.device) and not lead:  # the agents' columns, found on the host: a few percent of the frame
         columns = (ids > 0).nonzero()
         slot = ids[columns[:, 0], columns[:, 1]] - 1
     else:  # every column, those off the agents in slot n
-        nx, ny = ids.shape
         rows, cols = torch.arange(nx, device=frame.device), torch.arange(ny, device=frame.device)
         columns = torch.stack(torch.meshgrid(rows, cols, indexing="ij"), -1).reshape(-1, 2)
         slot = column_slots(ids, slots)
     cells = columns.double()
-    size = cells.new_zeros(slots + 1).index_add_(0, slot, torch.ones_like(cells[:, 0]))[:slots]
-    centroid = cells.new_zeros(slots + 1, 2).index_add_(0, slot, cells)[:slots] / size.clamp(min=1)[:, None]
+    size = slot_sums(torch.ones_like(cells[:, 0]).expand(slot.shape), slot, slots)
+    centroid = slot_sums(cells.expand(*slot.shape, 2), slot, slots) / size.clamp(min=1)[..., None]
     votes = _class_votes(frame, ids, is_agent, slots)
-    return dict(ids=ids, mask=is_agent, valid=valid, cls=torch.where(valid, votes.argmax(1), -1), votes=votes,
+    return dict(ids=ids, mask=is_agent, valid=valid, cls=torch.where(valid, votes.argmax(-1), -1), votes=votes,
                 centroid=centroid, columns=columns, column_slot=slot)
+
+
+def frame_of(agents: dict[str, Tensor], index: int, dim: int = 0) -> dict[str, Tensor]:
+    """The agents of one frame of :func:`frame_agents` run on several: index ``index`` of their
+    leading dim ``dim`` (views; ``columns``, shared by every frame, as it is)."""
+    return {k: v if k == "columns" else v.select(dim, index) for k, v in agents.items()}
+
+
+def slot_sums(values: Tensor, owner: Tensor, slots: int) -> Tensor:
+    """Per slot, the sum of per-column ``values`` ``[..., N, *rest]`` over its columns (``owner``
+    ``[..., N]``, a ``column_slot`` of :func:`frame_agents`; slot ``slots`` is dropped):
+    ``[..., slots, *rest]``. One frame's sums run in column order, as its index_add does."""
+    lead, rest = owner.shape[:-1], values.shape[owner.dim():]
+    frames, flat = math.prod(lead), owner
+    if lead:  # each frame's slots after the last frame's
+        flat = (owner + torch.arange(frames, device=owner.device).view(*lead, 1) * (slots + 1)).flatten()
+    sums = values.new_zeros(frames * (slots + 1), *rest).index_add_(0, flat, values.reshape(-1, *rest))
+    return sums.view(*lead, slots + 1, *rest).narrow(len(lead), 0, slots)
 
 
 def agent_levels(agents: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
     """Per slot of :func:`frame_agents`, the lowest level of its voxels and the one above its
-    highest: ``bottom``, ``top`` ``[n]`` int64 (Z and 0 for an empty slot)."""
-    mask, n = agents["mask"], agents["cls"].shape[0]
+    highest: ``bottom``, ``top`` ``[..., n]`` int64 (Z and 0 for an empty slot)."""
+    mask, n = agents["mask"], agents["cls"].shape[-1]
     nz = mask.shape[-1]
     dtype = torch.uint8 if nz < 256 else torch.long  # the per-column maxima over a byte are 10x faster
     level = torch.arange(nz, device=mask.device, dtype=dtype)
     i, j = agents["columns"].unbind(1)
-    lowest = nz - (mask * (nz - level)).amax(-1)[i, j].long()  # Z on a column without an agent voxel
-    highest = (mask * (level + 1)).amax(-1)[i, j].long()
+    lowest = nz - (mask * (nz - level)).amax(-1)[..., i, j].long()  # Z on a column without an agent voxel
+    highest = (mask * (level + 1)).amax(-1)[..., i, j].long()
     slot = agents["column_slot"]
-    bottom = slot.new_full((n + 1,), nz).scatter_reduce_(0, slot, lowest, "amin")[:n]
-    return bottom, slot.new_zeros(n + 1).scatter_reduce_(0, slot, highest, "amax")[:n]
+    lead = slot.shape[:-1]
+    bottom = slot.new_full((*lead, n + 1), nz).scatter_reduce_(-1, slot, lowest, "amin")[..., :n]
+    return bottom, slot.new_zeros(*lead, n + 1).scatter_reduce_(-1, slot, highest, "amax")[..., :n]
 
 
 def column_slots(ids: Tensor, slots: int) -> Tensor:
-    """Each column's slot ``[X * Y]`` (row-major; component map ``ids``), and ``slots`` (one past
-    the last) off the agents: per-slot sums over the columns gather there, then are dropped."""
-    return torch.where(ids > 0, ids - 1, slots).flatten()
+    """Each column's slot ``[..., X * Y]`` (row-major; component map ``ids`` ``[..., X, Y]``), and
+    ``slots`` (one past the last) off the agents: per-slot sums over the columns gather there,
+    then are dropped."""
+    return torch.where(ids > 0, ids - 1, slots).flatten(-2)
 
 
 def slot_values(values: Tensor, column_slot: Tensor) -> Tensor:
-    """Per column, its slot's row of ``values`` ``[n, ...]``, and zeros for the columns off the
-    agents (slot n, :func:`column_slots`)."""
-    return torch.cat([values, values.new_zeros(1, *values.shape[1:])])[column_slot]
+    """Per column, its slot's row of ``values`` ``[..., n, *rest]``, and zeros for the columns off
+    the agents (slot n, :func:`column_slots`): ``[..., N, *rest]`` for ``column_slot`` ``[..., N]``."""
+    lead = column_slot.dim() - 1
+    padded = torch.cat([values, values.new_zeros(*values.shape[:lead], 1, *values.shape[lead + 1:])], dim=lead)
+    if not lead:
+        return padded[column_slot]
+    index = column_slot.view(*column_slot.shape, *(1,) * (values.dim() - lead - 1))
+    return torch.take_along_dim(padded, index, dim=lead)
 
 
 def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Tensor:
-    """Per slot, its voxels of each class ``[slots, NUM_CLASSES]`` int64: on the CPU from the
-    agents' voxels (found on the host: a few percent of the frame), elsewhere from every voxel
-    (nothing waits for the device)."""
-    votes = ids.new_zeros(slots + 1, NUM_CLASSES)
-    if reads_host(frame.device):
+    """Per slot, its voxels of each class ``[..., slots, NUM_CLASSES]`` int64: on the CPU from the
+    agents' voxels of one frame (found on the host: a few percent of it), elsewhere from every
+    voxel (nothing waits for the device)."""
+    lead = frame.shape[:-3]
+    votes = ids.new_zeros(*lead, slots + 1, NUM_CLASSES)
+    if reads_host(frame.device) and not lead:
         ijz = is_agent.nonzero()
         label = frame[is_agent].long()
         votes.index_put_((ids[ijz[:, 0], ijz[:, 1]] - 1, label), torch.ones_like(label), accumulate=True)
     else:
         slot = torch.where(is_agent, ids[..., None] - 1, slots)
+        if lead:  # each frame's slots after the last frame's
+            slot = slot + torch.arange(ids[..., 0, 0].numel(), device=frame.device).view(*lead, 1, 1, 1) * (slots + 1)
         votes.view(-1).index_add_(0, (slot * NUM_CLASSES + frame.long()).flatten(),
                                   torch.ones(1, dtype=torch.long, device=frame.device).expand(frame.numel()))
-    return votes[:slots]
+    return votes[..., :slots, :]
 
 
 def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
     """Per present slot (:func:`frame_agents`), the slot of the nearest valid previous component
-    of its class whose centroid lies within ``gate_cells``, else -1: ``[n]`` int64."""
-    n = present["cls"].shape[0]
-    if n == 0 or previous["cls"].shape[0] == 0:
-        return torch.full((n,), -1, dtype=torch.long, device=present["cls"].device)
-    dist = (present["centroid"][:, None] - previous["centroid"][None]).norm(dim=-1)
-    nearest, match = dist.masked_fill(_unmatchable(present["cls"], previous), math.inf).min(1)
+    of its class whose centroid lies within ``gate_cells``, else -1: ``[..., n]`` int64."""
+    n = present["cls"].shape[-1]
+    if n == 0 or previous["cls"].shape[-1] == 0:
+        return torch.full(present["cls"].shape, -1, dtype=torch.long, device=present["cls"].device)
+    dist = (present["centroid"][..., :, None, :] - previous["centroid"][..., None, :, :]).norm(dim=-1)
+    nearest, match = dist.masked_fill(_unmatchable(present["cls"], previous), math.inf).min(-1)
     return torch.where(nearest <= gate_cells, match, torch.full_like(match, -1))
 
 
 def _unmatchable(cls: Tensor, candidates: dict[str, Tensor]) -> Tensor:
-    """``[n, m]``: which of the ``candidates``' slots (:func:`frame_agents`) an agent of class
-    ``cls`` ``[n]`` can never be: those of another class, and the empty ones."""
-    return (cls[:, None] != candidates["cls"][None]) | ~candidates["valid"][None]
+    """``[..., n, m]``: which of the ``candidates``' slots (:func:`frame_agents`) an agent of class
+    ``cls`` ``[..., n]`` can never be: those of another class, and the empty ones."""
+    return (cls[..., :, None] != candidates["cls"][..., None, :]) | ~candidates["valid"][..., None, :]
 
 
 def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:
@@ -162,16 +196,21 @@ def agent_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], ga
 
 
 def _gather(values: Tensor, index: Tensor) -> Tensor:
-    """``values[index]`` where ``index >= 0``, anything elsewhere (zeros if ``values`` is empty):
-    a lookup that reads nothing on the host, for a ``torch.where`` on ``index >= 0``."""
-    if values.shape[0] == 0:
-        return values.new_zeros(index.shape + values.shape[1:])
-    return values[index.clamp(min=0)]
+    """Per slot, ``values`` ``[..., m, *rest]`` at ``index`` ``[..., n]`` where ``index >= 0``,
+    anything elsewhere (zeros if ``values`` is empty): a lookup that reads nothing on the host,
+    for a ``torch.where`` on ``index >= 0``. ``[..., n, *rest]``."""
+    lead = index.dim() - 1
+    rest = values.shape[lead + 1:]
+    if values.shape[lead] == 0:
+        return values.new_zeros(*index.shape, *rest)
+    if not lead:
+        return values[index.clamp(min=0)]
+    return torch.take_along_dim(values, index.clamp(min=0).view(*index.shape, *(1,) * len(rest)), dim=lead)
 
 
 def _matched_steps(present: dict[str, Tensor], previous: dict[str, Tensor], match: Tensor) -> Tensor:
     """:func:`agent_velocities` for a given ``match`` (:func:`match_components`)."""
-    found = (match >= 0)[:, None]
+    found = (match >= 0)[..., None]
     return torch.where(found, present["centroid"] - _gather(previous["centroid"], match), 0.0)
 
 
@@ -216,20 +255,19 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
 
 def component_shifts(agents: dict[str, Tensor], displacement: Tensor) -> Tensor:
     """Per step and agent slot of :func:`frame_agents`, the mean of a per-plane-cell forward
-    ``displacement`` ``[S, 2, H, W]`` (plane cells) over the agent's grid columns, in grid
-    cells: ``[S, n, 2]`` float64 (0 for an empty slot). An agent moves as a whole (a car does
-    not stretch)."""
-    ids = agents["ids"]
-    nx, ny = ids.shape
+    ``displacement`` ``[..., S, 2, H, W]`` (plane cells) over the agent's grid columns, in grid
+    cells: ``[..., S, n, 2]`` float64 (0 for an empty slot). An agent moves as a whole (a car
+    does not stretch)."""
+    nx, ny = agents["ids"].shape[-2:]
     h, w = displacement.shape[-2:]
     fx, fy = -(-nx // h), -(-ny // w)
-    n = agents["cls"].shape[0]
+    n = agents["cls"].shape[-1]
     slot, columns = agents["column_slot"], agents["columns"]
-    per_column = displacement[:, :, columns[:, 0] // fx, columns[:, 1] // fy].double()  # [S, 2, N]
-    total = per_column.new_zeros(displacement.shape[0], 2, n + 1).index_add_(2, slot, per_column)[..., :n]
-    count = per_column.new_zeros(n + 1).index_add_(0, slot, torch.ones_like(per_column[0, 0]))[:n].clamp(min=1)
-    scale = device_constant((fx, fy), total.dtype, total.device).view(1, 2, 1)
-    return (total / count * scale).transpose(1, 2)
+    per_column = displacement[..., columns[:, 0] // fx, columns[:, 1] // fy].double().movedim(-1, -3)  # [..., N, S, 2]
+    total = slot_sums(per_column, slot, n)
+    count = slot_sums(torch.ones_like(per_column[..., 0, 0]), slot, n).clamp(min=1)
+    scale = device_constant((fx, fy), total.dtype, total.device)
+    return (total / count[..., None, None] * scale).transpose(-3, -2)
 
 
 def chained_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], older: dict[str, Tensor],
@@ -243,23 +281,26 @@ def chained_velocities(present: dict[str, Tensor], previous: dict[str, Tensor], 
     velocity = _matched_steps(present, previous, match)
     back = torch.where(match >= 0, _gather(match_components(previous, older, gate_cells), match), -1)
     two_steps = (present["centroid"] - _gather(older["centroid"], back)) / 2
-    return torch.where((back >= 0)[:, None], two_steps, velocity)
+    return torch.where((back >= 0)[..., None], two_steps, velocity)
 
 
-def _pooled_field(shape: tuple[int, int], agents: list[tuple[Tensor, Tensor]], plane_shape: tuple[int, int],
-                  channels: int, device: torch.device) -> Tensor:
-    """Per-component values as a field on the xy plane: ``agents`` holds per window the component
-    map ``ids`` ``[X, Y]`` (:func:`frame_agents`) and values ``[n, channels]`` in grid cells per step ->
-    ``[B, C, H, W]`` float32 in plane cells (see :func:`agent_velocity_field`)."""
-    nx, ny = shape
+def column_values(ids: Tensor, values: Tensor) -> Tensor:
+    """Per-slot ``values`` ``[..., n, C]`` of the component map ``ids`` ``[..., X, Y]``
+    (:func:`frame_agents`) on its grid columns, and whether a column holds an agent (the last
+    channel): ``[..., C + 1, X, Y]`` float32."""
+    *lead, nx, ny = ids.shape
+    per_column = slot_values(values, column_slots(ids, values.shape[-2])).transpose(-1, -2)
+    return torch.cat([per_column.reshape(*lead, -1, nx, ny).float(), (ids > 0).float()[..., None, :, :]], -3)
+
+
+def _pooled_field(columns: Tensor, plane_shape: tuple[int, int]) -> Tensor:
+    """Per-component values on the grid columns (:func:`column_values` ``[B, C + 1, X, Y]``, in
+    grid cells per step) as a field on the xy plane: ``[B, C, H, W]`` float32 in plane cells (see
+    :func:`agent_velocity_field`)."""
+    nx, ny = columns.shape[-2:]
     h, w = plane_shape
     fx, fy = -(-nx // h), -(-ny // w)  # grid columns per plane cell (an odd grid's last cell has fewer)
-    c = channels
-    # per grid column: the values and whether it holds an agent
-    columns = torch.zeros(len(agents), c + 1, nx, ny, dtype=torch.float32, device=device)
-    for n, (ids, values) in enumerate(agents):
-        columns[n, -1] = (ids > 0).float()
-        columns[n, :c] = slot_values(values, column_slots(ids, values.shape[0])).T.reshape(c, nx, ny).float()
+    c = columns.shape[1] - 1
     pooled = F.avg_pool2d(F.pad(columns, (0, fy * w - ny, 0, fx * h - nx)), (fx, fy))
     count, agent = pooled[:, -1:], pooled[:, -1:] > 0
     field = pooled[:, :-1] / count.clamp(min=1e-6)  # 0 where no agent column
@@ -291,11 +332,12 @@ def agent_velocity_field(
         raise ValueError(f"agent_velocity_field: previous {list(previous.shape)} and present "
                          f"{list(present.shape)} differ in shape")
     slots = agent_slots(present.device)
-    agents = []
+    columns = []
     for n in range(present.shape[0]):
         now = frame_agents(present[n], classes, slots)
-        agents.append((now["ids"], agent_velocities(now, frame_agents(previous[n], classes, slots), gate / VOXEL_SIZE)))
-    return _pooled_field(tuple(present.shape[1:3]), agents, plane_shape, 2, present.device)
+        velocity = agent_velocities(now, frame_agents(previous[n], classes, slots), gate / VOXEL_SIZE)
+        columns.append(column_values(now["ids"], velocity))
+    return _pooled_field(torch.stack(columns), plane_shape)
 
 
 def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float = TRACK_GATE) -> Tensor:
@@ -309,13 +351,17 @@ def tracker_velocities(frames: Tensor, plane_shape: tuple[int, int], gate: float
         raise ValueError(f"tracker_velocities: frames must be [B, 3, X, Y, Z], got {list(frames.shape)}")
     gate_cells = gate / VOXEL_SIZE
     slots = agent_slots(frames.device)
-    agents = []
-    for n in range(frames.shape[0]):
-        older, previous, now = (frame_agents(frames[n, t], AGENT_CLASSES, slots) for t in range(3))
+    if slots is None:  # each window's agents counted on the host
+        windows = [[frame_agents(frames[n, t], AGENT_CLASSES) for t in range(3)] for n in range(frames.shape[0])]
+    else:  # every window's frames at once
+        every = frame_agents(frames, AGENT_CLASSES, slots)
+        windows = [[frame_of(every, t, 1) for t in range(3)]]
+    columns = []
+    for older, previous, now in windows:
         velocity = torch.cat([agent_velocities(now, previous, gate_cells),
-                              chained_velocities(now, previous, older, gate_cells)], dim=1)
-        agents.append((now["ids"], velocity))
-    return _pooled_field(tuple(frames.shape[2:4]), agents, plane_shape, VELOCITY_CHANNELS, frames.device)
+                              chained_velocities(now, previous, older, gate_cells)], dim=-1)
+        columns.append(column_values(now["ids"], velocity))
+    return _pooled_field(torch.stack(columns) if slots is None else columns[0], plane_shape)
 
 
 def blended_velocity(velocity: Tensor) -> Tensor:
@@ -340,27 +386,29 @@ def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
     its agent in every frame, following it back from the present: ``[n, T]`` int64, -1 where
     it was lost (and in every frame before; and for an empty slot). The first step back
     searches the tracker's gate, the next ones ``FOLLOW_GATE`` around the position its
-    velocity predicts."""
+    velocity predicts. Frames of several windows at once (records with leading dims ``[...]``,
+    ``poses`` ``[..., T, 3]``) give ``[..., n, T]``."""
     now = agents[-1]
-    n, frames = now["cls"].shape[0], len(agents)
+    lead, n, frames = now["cls"].shape[:-1], now["cls"].shape[-1], len(agents)
     device = now["centroid"].device
-    match = torch.full((n, frames), -1, dtype=torch.long, device=device)
-    match[:, -1] = torch.where(now["valid"], torch.arange(n, device=device), -1)
-    position = cell_metres(now["centroid"], poses[-1])
+    match = torch.full((*lead, n, frames), -1, dtype=torch.long, device=device)
+    match[..., -1] = torch.where(now["valid"], torch.arange(n, device=device), -1)
+    position = cell_metres(now["centroid"], poses[..., -1:, :])
     velocity = torch.zeros_like(position)
-    gate = torch.full((n,), TRACK_GATE, dtype=torch.float64, device=device)
+    gate = torch.full((*lead, n), TRACK_GATE, dtype=torch.float64, device=device)
     alive = now["valid"].clone()
     for t in range(frames - 2, -1, -1):
         before = agents[t]
-        if before["cls"].shape[0] == 0:
+        if before["cls"].shape[-1] == 0:
             break
-        found = cell_metres(before["centroid"], poses[t])
-        dist = (position - velocity)[:, None].sub(found[None]).norm(dim=-1)
-        nearest, index = dist.masked_fill(_unmatchable(now["cls"], before), math.inf).min(1)
+        found = cell_metres(before["centroid"], poses[..., t : t + 1, :])
+        dist = (position - velocity)[..., :, None, :].sub(found[..., None, :, :]).norm(dim=-1)
+        nearest, index = dist.masked_fill(_unmatchable(now["cls"], before), math.inf).min(-1)
         ok = alive & (nearest <= gate)
-        match[:, t] = torch.where(ok, index, match[:, t])
-        velocity = torch.where(ok[:, None], position - found[index], velocity)
-        position = torch.where(ok[:, None], found[index], position)
+        match[..., t] = torch.where(ok, index, match[..., t])
+        there = torch.take_along_dim(found, index[..., None], dim=-2)
+        velocity = torch.where(ok[..., None], position - there, velocity)
+        position = torch.where(ok[..., None], there, position)
         gate = torch.where(ok, torch.full_like(gate, FOLLOW_GATE), gate)
         alive &= ok
     return match

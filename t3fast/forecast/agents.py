@@ -7,6 +7,8 @@ columns in every past frame."""
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import torch
 from torch import Tensor
 
@@ -28,15 +30,25 @@ def measured_velocities(occupancy: Tensor, poses: Tensor, plane_shape: tuple[int
 @torch.no_grad()
 def fitted_boxes(occupancy: Tensor, poses: Tensor) -> tuple[list[AgentBoxes], list[Tensor]]:
     """Per sample, the boxes of the present's agents fitted to the past frames (labels
-    ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`)
-    and the present's agent map ``[X, Y]`` (0 off the agents, else 1 + the agent's index)."""
-    boxes, ids = [], []
+    ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`,
+    every window at once in fixed slots) and the present's agent map ``[X, Y]`` (0 off the
+    agents, else 1 + the agent's index)."""
     slots = agent_slots(occupancy.device)
-    for n in range(occupancy.shape[0]):
-        now, fit = fit_agent_boxes(occupancy[n], poses[n], slots=slots)
+    if slots is not None:  # fixed slots: every window at once
+        now, fit = fit_agent_boxes(occupancy, poses, slots=slots)
+        windows = range(occupancy.shape[0])
+        return [AgentBoxes(**{f.name: _window(getattr(fit, f.name), n) for f in fields(fit)}) for n in windows], [
+            now["ids"][n] for n in windows]
+    boxes, ids = [], []
+    for n in range(occupancy.shape[0]):  # each window's agents counted on the host
+        now, fit = fit_agent_boxes(occupancy[n], poses[n])
         boxes.append(fit)
         ids.append(now["ids"])
     return boxes, ids
+
+
+def _window(value: Tensor | None, n: int) -> Tensor | None:
+    return None if value is None else value[n]
 
 
 class FindAgents:

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from t3fast.agents.box_kinematics import ego_step
 from t3fast.agents.boxes import AgentBoxes
-from t3fast.agents.tracker import agent_slots, component_shifts, frame_agents
+from t3fast.agents.tracker import agent_slots, component_shifts, frame_agents, frame_of
 from t3fast.data.classes import AGENT_CLASSES, VOXEL_SIZE
 from t3fast.forecast.records import AgentMoves, Agents, Past, Scene
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
@@ -36,13 +36,15 @@ class MoveAgents:
     def __call__(self, past: Past, agents: Agents, scene: Scene) -> list[AgentMoves]:
         present = past.present_labels
         slots = agent_slots(present.device)
-        moves = []
-        for n in range(present.shape[0]):
-            now = frame_agents(present[n], AGENT_CLASSES, slots)
-            shift = component_shifts(now, scene.displacements[n])
-            fitted = agents.boxes[n] if agents.boxes is not None else None
-            moves.append(self._move(past, n, now, shift, fitted, agents.ids))
-        return moves
+        if slots is None:  # each window's agents counted on the host
+            found = [frame_agents(present[n], AGENT_CLASSES) for n in range(present.shape[0])]
+            shifts = [component_shifts(now, scene.displacements[n]) for n, now in enumerate(found)]
+        else:  # every window's at once
+            every = frame_agents(present, AGENT_CLASSES, slots)
+            found = [frame_of(every, n) for n in range(present.shape[0])]
+            shifts = component_shifts(every, scene.displacements).unbind(0)
+        return [self._move(past, n, now, shift, agents.boxes[n] if agents.boxes is not None else None, agents.ids)
+                for n, (now, shift) in enumerate(zip(found, shifts, strict=True))]
 
     def _move(self, past: Past, n: int, now: dict[str, Tensor], shift: Tensor, fitted: AgentBoxes | None,
               ids: list[Tensor] | None) -> AgentMoves:

@@ -12,7 +12,7 @@ from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK, box_footprint
 from t3fast.data.synthetic.render import draw_boxes
 from t3fast.data.synthetic.world import ON_GROUND, z_level
-from t3fast.models.ego_motion import relative
+from t3fast.models.ego_motion import planar_poses, relative
 
 GRID = (200, 200, 16)
 
@@ -158,3 +158,30 @@ def test_bad_shapes_are_refused():
         fit_agent_boxes(torch.zeros(5, 200, 200, dtype=torch.uint8), torch.zeros(5, 3))
     with pytest.raises(ValueError, match=r"frames must be \[T, X, Y, Z\] and poses \[T, 3\]"):
         fit_agent_boxes(torch.zeros(5, 200, 200, 16, dtype=torch.uint8), torch.zeros(4, 3))
+
+
+def test_the_boxes_of_several_windows_at_once_are_each_window_s_alone():
+    """With fixed slots (a GPU forecast), the windows' boxes are fitted in one call: each
+    window's are those it gets alone, and alone with slots they are the counted agents' boxes."""
+    from dataclasses import fields
+
+    from t3fast.data.sample import PRESENT
+    from t3fast.data.synthetic import SyntheticDriving
+
+    windows = SyntheticDriving("val", 2, 20, stride=9)
+    frames = torch.stack([windows[i].occ[: PRESENT + 1] for i in range(2)])
+    poses = planar_poses(torch.stack([windows[i].ego_poses[: PRESENT + 1] for i in range(2)]), PRESENT)
+    now, fit = fit_agent_boxes(frames, poses, slots=64)
+    assert fit.centre.shape == (2, 64, 2) and fit.track.shape == (2, 64, PRESENT + 1, 2)
+    for b in range(2):
+        alone_now, alone = fit_agent_boxes(frames[b], poses[b], slots=64)
+        counted_now, counted = fit_agent_boxes(frames[b], poses[b])
+        n = counted_now["cls"].shape[0]
+        assert 5 < n < 64 and torch.equal(now["ids"][b], alone_now["ids"])
+        for f in fields(fit):
+            got, want, exact = getattr(fit, f.name), getattr(alone, f.name), getattr(counted, f.name)
+            if got is None:
+                continue
+            torch.testing.assert_close(got[b], want, rtol=0, atol=0, equal_nan=True, msg=f.name)
+            torch.testing.assert_close(want[:n], exact, rtol=1e-9, atol=1e-9, equal_nan=True, msg=f.name)
+        assert fit.drawn[b, :n].any() and not fit.drawn[b, n:].any()

@@ -200,3 +200,22 @@ def test_moving_agents_in_slots_without_host_reads_gives_the_compacted_result():
         with sync_free():
             assert torch.equal(move_agents(frame, agents, shift, FREE, keep=kept), compacted)
     assert (compacted != frame).any()
+
+
+def test_the_frames_of_several_windows_at_once_are_each_frame_alone():
+    """With fixed slots, frame_agents takes frames ``[..., X, Y, Z]`` (a GPU forecast finds every
+    window's agents in one call): each frame's records are those of the frame alone."""
+    from t3fast.agents.tracker import frame_agents, frame_of
+    from t3fast.data.classes import AGENT_CLASSES
+
+    frames = torch.stack([torch.stack([_busy_frame(3 * b + t) for t in range(3)]) for b in range(2)])
+    classes = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    every = frame_agents(frames, classes, slots=40)
+    assert every["ids"].shape == (2, 3, 40, 36) and every["column_slot"].shape == (2, 3, 40 * 36)
+    for b in range(2):
+        for t in range(3):
+            alone, got = frame_agents(frames[b, t], classes, slots=40), frame_of(frame_of(every, b), t)
+            for key in ("ids", "mask", "valid", "cls", "votes", "centroid"):
+                assert torch.equal(got[key], alone[key]), (b, t, key)
+    with pytest.raises(ValueError, match="need fixed slots"):
+        frame_agents(frames, classes)

@@ -73,9 +73,9 @@ STILL_STEP = 0.2
 
 
 def ego_step(poses: Tensor) -> Tensor:
-    """The ego's last step ``[2]`` (metres, present frame) from the planar poses ``[T, 3]`` of the
-    observed frames in the present frame: from the previous pose to the origin."""
-    return -poses[-2, :2]
+    """The ego's last step ``[..., 2]`` (metres, present frame) from the planar poses ``[..., T, 3]``
+    of the observed frames in the present frame: from the previous pose to the origin."""
+    return -poses[..., -2, :2]
 
 
 def rotate(v: Tensor, angle: Tensor) -> Tensor:
@@ -85,31 +85,33 @@ def rotate(v: Tensor, angle: Tensor) -> Tensor:
 
 
 def agent_headings(boxes: AgentBoxes) -> Tensor:
-    """Each agent's frame heading ``[n]``: the direction of its fitted velocity where it moves
+    """Each agent's frame heading ``[..., n]``: the direction of its fitted velocity where it moves
     (the box's yaw says nothing of forward or backward), else its box yaw."""
     v = boxes.velocity
     moving = v.norm(dim=-1) > MOVING_STEP
-    return torch.where(moving, torch.atan2(v[:, 1], v[:, 0]), boxes.yaw)
+    return torch.where(moving, torch.atan2(v[..., 1], v[..., 0]), boxes.yaw)
 
 
 def kinematics(boxes: AgentBoxes, heading: Tensor) -> Tensor:
-    """Per agent ``[n, F]`` float32: the fitted velocity in its frame (metres per step), its speed,
-    per past frame the centroid's departure from the constant velocity (its frame, metres) and
-    whether it was seen, the class (one-hot over :data:`BOX_CLASSES`), length and width."""
+    """Per agent ``[..., n, F]`` float32: the fitted velocity in its frame (metres per step), its
+    speed, per past frame the centroid's departure from the constant velocity (its frame, metres)
+    and whether it was seen, the class (one-hot over :data:`BOX_CLASSES`), length and width."""
     if boxes.track is None:
         raise ValueError("BoxMotionNet reads the agents' tracks: fit the boxes with fit_agent_boxes")
     track = boxes.track
-    frames = track.shape[1]
+    frames = track.shape[-2]
     seen = ~track.isnan().any(-1)
     ago = -torch.arange(frames - 1, 0, -1, dtype=track.dtype, device=track.device)  # the past frames' times, in steps
-    expected = track[:, -1:] + ago[None, :, None] * boxes.velocity[:, None]
-    departure = rotate(torch.nan_to_num(track[:, :-1] - expected), -heading[:, None].expand(-1, frames - 1))
-    departure = departure * seen[:, :-1, None]
+    expected = track[..., -1:, :] + ago[:, None] * boxes.velocity[..., None, :]
+    departure = rotate(torch.nan_to_num(track[..., :-1, :] - expected),
+                       -heading[..., None].expand(*heading.shape, frames - 1))
+    departure = departure * seen[..., :-1, None]
     velocity = rotate(boxes.velocity, -heading)
     label = boxes.label
-    classes = (label[:, None] == device_constant(BOX_CLASSES, label.dtype, label.device)).to(track.dtype)
-    return torch.cat([velocity, boxes.velocity.norm(dim=-1, keepdim=True), departure.flatten(1),
-                      seen[:, :-1].to(track.dtype), classes, boxes.length[:, None], boxes.width[:, None]], 1).float()
+    classes = (label[..., None] == device_constant(BOX_CLASSES, label.dtype, label.device)).to(track.dtype)
+    return torch.cat([velocity, boxes.velocity.norm(dim=-1, keepdim=True), departure.flatten(-2),
+                      seen[..., :-1].to(track.dtype), classes, boxes.length[..., None], boxes.width[..., None]],
+                     -1).float()
 
 
 def kinematic_features(frames: int) -> int:
@@ -118,24 +120,30 @@ def kinematic_features(frames: int) -> int:
 
 
 def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_velocity: Tensor) -> Tensor:
-    """The scene the agents drive in, ``[CONTEXT_CHANNELS, X, Y]`` float32: per BEV column of the
-    present labels ``[X, Y, Z]``, which of :data:`CONTEXT_GROUPS` it holds, and on the columns of
-    each agent (``agent_ids`` ``[X, Y]``: 0 off the agents, else 1 + its index in ``boxes``) its
-    fitted velocity (metres per step, present frame). The ego is a vehicle too (the agents behind
-    it follow it), though the labels leave it out: its footprint at the origin is drawn into the
-    vehicles with its ``ego_velocity`` ``[2]`` (its last step, metres)."""
+    """The scene the agents drive in, ``[..., CONTEXT_CHANNELS, X, Y]`` float32: per BEV column of
+    the present labels ``[..., X, Y, Z]``, which of :data:`CONTEXT_GROUPS` it holds, and on the
+    columns of each agent (``agent_ids`` ``[..., X, Y]``: 0 off the agents, else 1 + its index in
+    ``boxes``) its fitted velocity (metres per step, present frame). The ego is a vehicle too (the
+    agents behind it follow it), though the labels leave it out: its footprint at the origin is
+    drawn into the vehicles with its ``ego_velocity`` ``[..., 2]`` (its last step, metres)."""
     groups = [in_classes(present, g).any(-1) for g in CONTEXT_GROUPS]
     ids = agent_ids.to(present.device)
+    lead, (nx, ny) = ids.shape[:-2], ids.shape[-2:]
     # row 0: off the agents; row 1 + i: agent i's velocity
-    per_agent = torch.cat([boxes.velocity.new_zeros(1, 2), boxes.velocity]).float().to(ids.device)
-    velocity = per_agent[ids].permute(2, 0, 1).contiguous()
-    footprint = _ego_footprint(tuple(ids.shape), ids.device)
+    v = boxes.velocity
+    per_agent = torch.cat([v.new_zeros(*v.shape[:-2], 1, 2), v], -2).float().to(ids.device)
+    if lead:
+        velocity = torch.take_along_dim(per_agent, ids.reshape(*lead, nx * ny, 1), dim=-2).view(*lead, nx, ny, 2)
+    else:
+        velocity = per_agent[ids]
+    velocity = velocity.movedim(-1, -3).contiguous()
+    footprint = _ego_footprint((nx, ny), ids.device)
     if footprint is not None:
         rows, cols, ego = footprint
-        groups[VEHICLES][rows, cols] |= ego
-        ego_motion = ego_velocity.to(ids.device, torch.float32).view(2, 1, 1)
-        velocity[:, rows, cols] = torch.where(ego, ego_motion, velocity[:, rows, cols])
-    return torch.cat([torch.stack(groups).float(), velocity])
+        groups[VEHICLES][..., rows, cols] |= ego
+        ego_motion = ego_velocity.to(ids.device, torch.float32).view(*lead, 2, 1, 1)
+        velocity[..., rows, cols] = torch.where(ego, ego_motion, velocity[..., rows, cols])
+    return torch.cat([torch.stack(groups, -3).float(), velocity], -3)
 
 
 @made_once
@@ -149,24 +157,30 @@ def _ego_footprint(shape: tuple[int, int], device: torch.device) -> tuple[slice,
 
 
 def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
-    """Each agent's view of the ``context`` ``[C, X, Y]`` (:func:`context_map`):
-    ``[n, C, CROP[0], CROP[1]]``, rows ahead along its ``heading`` ``[n]`` from ``centre``
-    ``[n, 2]`` (metres, present frame), columns from its right to its left (symmetric about its
-    centre line); the velocity channels turned into its frame."""
-    n = centre.shape[0]
+    """Each agent's view of the ``context`` ``[..., C, X, Y]`` (:func:`context_map`):
+    ``[..., n, C, CROP[0], CROP[1]]``, rows ahead along its ``heading`` ``[..., n]`` from
+    ``centre`` ``[..., n, 2]`` (metres, present frame), columns from its right to its left
+    (symmetric about its centre line); the velocity channels turned into its frame."""
+    lead, n = centre.shape[:-2], centre.shape[-2]
     cells = dict(dtype=torch.float32, device=context.device)
     along = -CROP_BEHIND + CROP_CELL * (torch.arange(CROP[0], **cells) + 0.5)
     across = CROP_CELL * (torch.arange(CROP[1], **cells) - (CROP[1] - 1) / 2)
     local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1)  # [A, W, 2]
-    h = heading.float().to(context.device)[:, None, None].expand(-1, *CROP)
-    points = rotate(local.expand(n, -1, -1, -1), h) + centre.float().to(context.device)[:, None, None]
+    h = heading.float().to(context.device)[..., None, None].expand(*heading.shape, *CROP)
+    points = rotate(local.expand(*lead, n, -1, -1, -1), h) + centre.float().to(context.device)[..., None, None, :]
     last = device_constant([s - 1 for s in context.shape[-2:]], torch.float32, context.device)
     cells = (points - device_constant(GRID_LOWER[:2], torch.float32, context.device)) / VOXEL_SIZE - 0.5
     grid = (cells / last * 2 - 1).flip(-1)  # grid_sample's x indexes the last dim (Y)
-    views = F.grid_sample(context.expand(n, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
-                          align_corners=True)
-    v = rotate(views[:, -2:].permute(0, 2, 3, 1), -h).permute(0, 3, 1, 2)
-    return torch.cat([views[:, :-2], v], 1)
+    if lead:  # one image per window, its agents' crops stacked along the rows
+        maps = context.reshape(-1, *context.shape[-3:])
+        views = F.grid_sample(maps, grid.reshape(maps.shape[0], n * CROP[0], CROP[1], 2), mode="bilinear",
+                              padding_mode="zeros", align_corners=True)
+        views = views.view(*lead, -1, n, *CROP).movedim(-3, -4)
+    else:
+        views = F.grid_sample(context.expand(n, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
+                              align_corners=True)
+    v = rotate(views[..., -2:, :, :].movedim(-3, -1), -h).movedim(-1, -3)
+    return torch.cat([views[..., :-2, :, :], v], -3)
 
 
 def mirror_views(views: Tensor) -> Tensor:
@@ -184,20 +198,23 @@ def mirror_kinematics(features: Tensor) -> Tensor:
 
 
 def corrected_motion(velocity: Tensor, heading: Tensor, correction: Tensor) -> tuple[Tensor, Tensor]:
-    """The displacements ``[n, S, 2]`` (present frame, metres) and yaw changes ``[n, S]`` of agents
-    with fitted ``velocity`` ``[n, 2]`` (metres per step) and frame ``heading`` ``[n]``: the
-    constant velocity plus the :class:`~t3fast.models.box_motion.BoxMotionNet` ``correction`` ``[n, S, 3]``."""
-    steps = correction.shape[1]
-    k = torch.arange(1, steps + 1, dtype=correction.dtype, device=correction.device)[None, :, None]
-    local = k * rotate(velocity.to(correction.dtype), -heading.to(correction.dtype))[:, None] + correction[..., :2]
-    return rotate(local, heading.to(correction.dtype)[:, None].expand(-1, steps)), correction[..., 2]
+    """The displacements ``[..., n, S, 2]`` (present frame, metres) and yaw changes ``[..., n, S]``
+    of agents with fitted ``velocity`` ``[..., n, 2]`` (metres per step) and frame ``heading``
+    ``[..., n]``: the constant velocity plus the :class:`~t3fast.models.box_motion.BoxMotionNet`
+    ``correction`` ``[..., n, S, 3]``."""
+    steps = correction.shape[-2]
+    k = torch.arange(1, steps + 1, dtype=correction.dtype, device=correction.device)[:, None]
+    local = k * rotate(velocity.to(correction.dtype), -heading.to(correction.dtype))[..., None, :] + correction[..., :2]
+    heading = heading.to(correction.dtype)[..., None]
+    return rotate(local, heading.expand(*heading.shape[:-1], steps)), correction[..., 2]
 
 
 def future_poses(boxes: AgentBoxes, heading: Tensor, correction: Tensor) -> Tensor:
-    """The boxes' poses ``[S, n, 3]`` (centre metres, yaw; present frame) at every future step:
+    """The boxes' poses ``[..., S, n, 3]`` (centre metres, yaw; present frame) at every future step:
     :func:`corrected_motion` from their fitted centre and yaw; an agent slower than
     :data:`STILL_STEP` stands at its present pose."""
     displacement, turn = corrected_motion(boxes.velocity, heading, correction.double())
     moving = (boxes.velocity.norm(dim=-1) >= STILL_STEP).to(displacement.dtype)
-    centre = boxes.centre[None] + displacement.transpose(0, 1) * moving[None, :, None]
-    return torch.cat([centre, (boxes.yaw[None] + turn.T * moving[None])[..., None]], -1)
+    centre = boxes.centre[..., None, :, :] + displacement.transpose(-3, -2) * moving[..., None, :, None]
+    yaw = boxes.yaw[..., None, :] + turn.transpose(-2, -1) * moving[..., None, :]
+    return torch.cat([centre, yaw[..., None]], -1)

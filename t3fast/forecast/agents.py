@@ -28,23 +28,20 @@ def measured_velocities(occupancy: Tensor, poses: Tensor, plane_shape: tuple[int
 
 
 @torch.no_grad()
-def fitted_boxes(occupancy: Tensor, poses: Tensor) -> tuple[list[AgentBoxes], list[Tensor]]:
+def fitted_boxes(occupancy: Tensor, poses: Tensor) -> tuple[list[AgentBoxes], Tensor, AgentBoxes | None]:
     """Per sample, the boxes of the present's agents fitted to the past frames (labels
-    ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`,
-    every window at once in fixed slots) and the present's agent map ``[X, Y]`` (0 off the
-    agents, else 1 + the agent's index)."""
+    ``[B, T, X, Y, Z]``, planar poses ``[B, T, 3]``; :func:`~t3fast.agents.boxes.fit_agent_boxes`);
+    the present's agent maps ``[B, X, Y]`` (0 off the agents, else 1 + the agent's index); and,
+    fitted in fixed slots (every window at once), the boxes of all of them ``[B, n, ...]``, which
+    the list's are views of (else None)."""
     slots = agent_slots(occupancy.device)
-    if slots is not None:  # fixed slots: every window at once
-        now, fit = fit_agent_boxes(occupancy, poses, slots=slots)
-        windows = range(occupancy.shape[0])
-        return [AgentBoxes(**{f.name: _window(getattr(fit, f.name), n) for f in fields(fit)}) for n in windows], [
-            now["ids"][n] for n in windows]
-    boxes, ids = [], []
-    for n in range(occupancy.shape[0]):  # each window's agents counted on the host
-        now, fit = fit_agent_boxes(occupancy[n], poses[n])
-        boxes.append(fit)
-        ids.append(now["ids"])
-    return boxes, ids
+    if slots is None:  # each window's agents counted on the host
+        fits = [fit_agent_boxes(occupancy[n], poses[n]) for n in range(occupancy.shape[0])]
+        return [fit for _, fit in fits], torch.stack([now["ids"] for now, _ in fits]), None
+    now, fit = fit_agent_boxes(occupancy, poses, slots=slots)
+    views = [AgentBoxes(**{f.name: _window(getattr(fit, f.name), n) for f in fields(fit)})
+             for n in range(occupancy.shape[0])]
+    return views, now["ids"], fit
 
 
 def _window(value: Tensor | None, n: int) -> Tensor | None:
@@ -68,5 +65,5 @@ class FindAgents:
         if self.velocities:
             agents.velocity = measured_velocities(past.occupancy, past.poses, self.plane_shape)
         if self.boxes:
-            agents.boxes, agents.ids = fitted_boxes(past.occupancy, past.poses)
+            agents.boxes, agents.ids, agents.fits = fitted_boxes(past.occupancy, past.poses)
         return agents

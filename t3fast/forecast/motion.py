@@ -35,28 +35,39 @@ class MoveAgents:
     @torch.no_grad()
     def __call__(self, past: Past, agents: Agents, scene: Scene) -> list[AgentMoves]:
         present = past.present_labels
+        windows = range(present.shape[0])
         slots = agent_slots(present.device)
         if slots is None:  # each window's agents counted on the host
-            found = [frame_agents(present[n], AGENT_CLASSES) for n in range(present.shape[0])]
+            found = [frame_agents(present[n], AGENT_CLASSES) for n in windows]
             shifts = [component_shifts(now, scene.displacements[n]) for n, now in enumerate(found)]
+            poses = [None if agents.boxes is None else self._poses(past.occupancy[n], past.poses[n], agents.boxes[n],
+                                                                   agents.ids[n], shifts[n], found[n]) for n in windows]
         else:  # every window's at once
             every = frame_agents(present, AGENT_CLASSES, slots)
-            found = [frame_of(every, n) for n in range(present.shape[0])]
-            shifts = component_shifts(every, scene.displacements).unbind(0)
-        return [self._move(past, n, now, shift, agents.boxes[n] if agents.boxes is not None else None, agents.ids)
+            found = [frame_of(every, n) for n in windows]
+            shift = component_shifts(every, scene.displacements)
+            shifts = shift.unbind(0)
+            poses = [None] * len(windows) if agents.fits is None else self._poses(
+                past.occupancy, past.poses, agents.fits, agents.ids, shift, every).unbind(0)
+        return [self._moves(now, shift, agents.boxes[n] if agents.boxes is not None else None, poses[n])
                 for n, (now, shift) in enumerate(zip(found, shifts, strict=True))]
 
-    def _move(self, past: Past, n: int, now: dict[str, Tensor], shift: Tensor, fitted: AgentBoxes | None,
-              ids: list[Tensor] | None) -> AgentMoves:
-        """Sample ``n``'s moves: its agents ``now``, their ``shift`` ``[S, n, 2]`` and ``fitted`` boxes."""
-        if fitted is None:
-            return AgentMoves(now, shift, now["cls"].new_zeros(now["cls"].shape[0], dtype=torch.bool), None, None)
-        if fitted.label.shape[0] != now["cls"].shape[0]:
-            raise ValueError(f"{fitted.label.shape[0]} fitted boxes for the {now['cls'].shape[0]} agents "
+    def _poses(self, occupancy: Tensor, poses: Tensor, fitted: AgentBoxes, ids: Tensor, shift: Tensor,
+               now: dict[str, Tensor]) -> Tensor:
+        """Where the ``fitted`` boxes go ``[..., S, n, 3]``, for one window's agents ``now`` (or
+        every window's: leading dims ``[...]`` throughout) shifted by ``shift`` ``[..., S, n, 2]``;
+        its past labels ``occupancy`` ``[..., T, X, Y, Z]``, poses ``[..., T, 3]``, agent map ``ids``."""
+        if fitted.label.shape[-1] != now["cls"].shape[-1]:
+            raise ValueError(f"{fitted.label.shape[-1]} fitted boxes for the {now['cls'].shape[-1]} agents "
                              "of the present frame: fit them on the same frames")
         if self.box_motion is not None:
-            poses = predict_box_poses(self.box_motion, past.occupancy[n, -1], fitted, ids[n], ego_step(past.poses[n]))
-        else:
-            centre = fitted.centre + shift.to(fitted.centre.device) * VOXEL_SIZE
-            poses = torch.cat([centre, fitted.yaw.expand(shift.shape[0], -1)[..., None]], -1)
+            return predict_box_poses(self.box_motion, occupancy[..., -1, :, :, :], fitted, ids, ego_step(poses))
+        centre = fitted.centre[..., None, :, :] + shift.to(fitted.centre.device) * VOXEL_SIZE
+        return torch.cat([centre, fitted.yaw[..., None, :, None].expand(*centre.shape[:-1], 1)], -1)
+
+    @staticmethod
+    def _moves(now: dict[str, Tensor], shift: Tensor, fitted: AgentBoxes | None, poses: Tensor | None) -> AgentMoves:
+        """A window's moves: its agents ``now``, their ``shift`` ``[S, n, 2]``, ``fitted`` boxes and their ``poses``."""
+        if fitted is None:
+            return AgentMoves(now, shift, now["cls"].new_zeros(now["cls"].shape[0], dtype=torch.bool), None, None)
         return AgentMoves(now, shift, fitted.drawn, fitted, poses)

@@ -37,12 +37,15 @@ class Past:
 class Agents:
     """The present's agents as the classical tracker sees them: ``velocity`` ``[B, 4, H, W]``
     (:func:`~t3fast.agents.tracker.tracker_velocities`, for a forecaster with a tracker prior,
-    else None) and, for a model that draws boxes, per sample their fitted ``boxes`` and component
-    map ``ids`` ``[X, Y]`` (:func:`~t3fast.agents.boxes.fit_agent_boxes`), else None."""
+    else None) and, for a model that draws boxes, per sample their fitted ``boxes`` and the
+    component maps ``ids`` ``[B, X, Y]`` (:func:`~t3fast.agents.boxes.fit_agent_boxes`), else
+    None. Fitted in fixed slots (a GPU run), ``fits`` holds every window's boxes at once
+    (``[B, n, ...]``; ``boxes`` lists views of them), else None."""
 
     velocity: Tensor | None = None
     boxes: list[AgentBoxes] | None = None
-    ids: list[Tensor] | None = None
+    ids: Tensor | None = None
+    fits: AgentBoxes | None = None
 
 
 @dataclass

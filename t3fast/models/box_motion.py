@@ -78,15 +78,17 @@ def symmetric_correction(net: BoxMotionNet, views: Tensor, features: Tensor) -> 
 
 def predict_box_poses(net: BoxMotionNet, present: Tensor, boxes: AgentBoxes, agent_ids: Tensor,
                       ego_velocity: Tensor) -> Tensor:
-    """:func:`future_poses` of the agents of ``boxes`` as ``net`` moves them
-    (:func:`symmetric_correction`), reading the present
-    labels ``[X, Y, Z]`` whose agent map is ``agent_ids`` ``[X, Y]`` and the ego's last step
-    ``ego_velocity`` ``[2]`` (see :func:`context_map`)."""
-    n = boxes.centre.shape[0]
+    """:func:`future_poses` ``[..., S, n, 3]`` of the agents of ``boxes`` as ``net`` moves them
+    (:func:`symmetric_correction`), reading the present labels ``[..., X, Y, Z]`` whose agent map
+    is ``agent_ids`` ``[..., X, Y]`` and the ego's last step ``ego_velocity`` ``[..., 2]`` (see
+    :func:`context_map`); leading dims: several windows' boxes in fixed slots, through the
+    network in one pass."""
+    lead, n = boxes.centre.shape[:-2], boxes.centre.shape[-2]
     if n == 0:
-        return torch.zeros(net.steps, 0, 3, dtype=torch.float64, device=boxes.centre.device)
+        return torch.zeros(*lead, net.steps, 0, 3, dtype=torch.float64, device=boxes.centre.device)
     heading = agent_headings(boxes)
     device = next(net.parameters()).device
     views = crop_context(context_map(present, boxes, agent_ids, ego_velocity).to(device), boxes.centre, heading)
-    correction = symmetric_correction(net, views, kinematics(boxes, heading).to(device)).to(boxes.centre.device)
-    return future_poses(boxes, heading, correction)
+    features = kinematics(boxes, heading).to(device)
+    correction = symmetric_correction(net, views.flatten(0, -4), features.flatten(0, -2))
+    return future_poses(boxes, heading, correction.view(*lead, n, net.steps, 3).to(boxes.centre.device))

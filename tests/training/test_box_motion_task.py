@@ -50,7 +50,7 @@ def test_a_record_holds_what_inference_fits_and_the_true_future(records, world_c
     model.box_motion = BoxMotionNet()
     sample = windows[2]
     poses = planar_poses(sample.ego_poses[None], PRESENT)[:, : PRESENT + 1]
-    boxes, ids = fitted_boxes(sample.occ[None, : PRESENT + 1], poses)
+    boxes, ids, _ = fitted_boxes(sample.occ[None, : PRESENT + 1], poses)
     fit = boxes[0]
     fit.future = predict_box_poses(model.box_motion, sample.occ[PRESENT], fit, ids[0], ego_step(poses[0]))
     record = recs[2]

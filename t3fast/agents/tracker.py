@@ -162,11 +162,12 @@ def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Te
         ijz = is_agent.nonzero()
         label = frame[is_agent].long()
         votes.index_put_((ids[ijz[:, 0], ijz[:, 1]] - 1, label), torch.ones_like(label), accumulate=True)
-    else:
-        slot = torch.where(is_agent, ids[..., None] - 1, slots)
+    else:  # int32 voxel indices: half the memory traffic of a batch's frames
+        slot = torch.where(is_agent, ids.int()[..., None] - 1, slots)
         if lead:  # each frame's slots after the last frame's
-            slot = slot + torch.arange(ids[..., 0, 0].numel(), device=frame.device).view(*lead, 1, 1, 1) * (slots + 1)
-        votes.view(-1).index_add_(0, (slot * NUM_CLASSES + frame.long()).flatten(),
+            frames = torch.arange(math.prod(lead), dtype=torch.int32, device=frame.device)
+            slot += frames.view(*lead, 1, 1, 1) * (slots + 1)
+        votes.view(-1).index_add_(0, (slot * NUM_CLASSES + frame).flatten(),
                                   torch.ones(1, dtype=torch.long, device=frame.device).expand(frame.numel()))
     return votes[..., :slots, :]
 

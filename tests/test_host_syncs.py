@@ -21,8 +21,8 @@ MAX_FORECAST_SYNCS = 58
 #: drawing were batched)
 MAX_FORECAST_OPS = 4_500
 #: ops a GPU-mode forecast dispatches per window more in its batch (1,548 while each window's
-#: agents were found, followed, fitted and moved on their own: 125, the drawing)
-MAX_OPS_PER_WINDOW = 140
+#: agents were found, followed, fitted, moved and pasted on their own: 65, the boxes drawn)
+MAX_OPS_PER_WINDOW = 80
 #: (file, function) prefixes that may still read the device: the agents' variable-length records
 #: and the checks of the user's inputs
 INPUT_CHECKS = ("models/encoder.py:check_labels", "models/forecast_inputs.py:read_together")

@@ -222,13 +222,18 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     frame become ``free`` and each agent's voxels (whole columns, heights kept) are pasted at
     their shifted place, the agents ``keep`` ``[n]`` only (all when None); what leaves the grid
     is dropped, and where two land on one voxel the one later in row-major order wins. Returns
-    ``[S, X, Y, Z]``."""
-    nx, ny, nz = frame.shape
-    steps = shift.shape[0]
-    frames = frame.masked_fill(agents["mask"], free).expand(steps, nx, ny, nz).clone()
-    if agents["cls"].shape[0] == 0:
+    ``[S, X, Y, Z]``. Where the host is not read, several windows' frames may come at once
+    (leading dims ``[...]`` on every argument and the result)."""
+    lead, (nx, ny, nz) = frame.shape[:-3], frame.shape[-3:]
+    steps = shift.shape[-3]
+    frames = frame.masked_fill(agents["mask"], free)[..., None, :, :, :].expand(*lead, steps, nx, ny, nz).clone()
+    if agents["cls"].shape[-1] == 0:
         return frames
     slot = (agents["ids"] - 1).clamp(min=0)  # [X, Y]: each column's slot (0 off the agents, masked)
+    if lead:
+        kept = agents["mask"] if keep is None else agents["mask"] & _gather(keep, slot.flatten(-2)).view(slot.shape)[
+            ..., None]
+        return _move_windows(frame, kept, slot, shift, frames)
     paste = agents["mask"] if keep is None else agents["mask"] & keep[slot][..., None]
     if reads_host(frame.device):
         ijz = paste.nonzero()
@@ -251,6 +256,26 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     source = torch.arange(voxels, device=frame.device).view(1, nx, ny, nz).expand_as(target)
     winner = torch.full((steps * voxels + 1,), -1, dtype=torch.long, device=frame.device).scatter_reduce_(
         0, target.flatten(), source.flatten(), "amax")[:-1].view(steps, nx, ny, nz)
+    return torch.where(winner >= 0, frame.flatten()[winner.clamp(min=0)], frames)
+
+
+def _move_windows(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, frames: Tensor) -> Tensor:
+    """:func:`move_agents` of several windows' frames ``[..., X, Y, Z]`` at once, every voxel:
+    the voxels ``paste`` of each column's ``slot`` ``[..., X, Y]`` moved by its ``shift``
+    ``[..., S, n, 2]`` into the emptied ``frames`` ``[..., S, X, Y, Z]``."""
+    lead, (nx, ny, nz) = frame.shape[:-3], frame.shape[-3:]
+    windows, steps, voxels = math.prod(lead), shift.shape[-3], nx * ny * nz
+    device = frame.device
+    d = torch.take_along_dim(shift, slot.flatten(-2)[..., None, :, None], dim=-2).view(*lead, steps, nx, ny, 2)
+    i = torch.arange(nx, device=device)[:, None] + d[..., 0]
+    j = torch.arange(ny, device=device)[None, :] + d[..., 1]
+    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [..., S, X, Y]
+    target = (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1))[..., None] * nz + torch.arange(nz, device=device)
+    target = target + torch.arange(windows * steps, device=device).view(*lead, steps, 1, 1, 1) * voxels
+    target = torch.where(paste[..., None, :, :, :] & inside[..., None], target, windows * steps * voxels)
+    source = torch.arange(windows * voxels, device=device).view(*lead, 1, nx, ny, nz).expand_as(target)
+    winner = torch.full((windows * steps * voxels + 1,), -1, dtype=torch.long, device=device).scatter_reduce_(
+        0, target.flatten(), source.flatten(), "amax")[:-1].view(frames.shape)
     return torch.where(winner >= 0, frame.flatten()[winner.clamp(min=0)], frames)
 
 

@@ -187,11 +187,15 @@ class DrawAgents:
     @torch.no_grad()
     def __call__(self, past: Past, scene: Scene, moves: list[AgentMoves] | None, poses: Tensor) -> Tensor:
         present = past.present_labels
-        scenes = []
-        for n, move in enumerate(moves):  # the agents drawn as boxes leave their voxels behind
-            scenes.append(move_agents(present[n], move.agents, move.shift.round().long(), FREE,
-                                      keep=~move.as_box.to(present.device)))
-        labels = unwarp_sequence(torch.stack(scenes), poses, fill=IGNORE)
+        if reads_host(present.device):  # each window's agents, counted on the host
+            scenes = torch.stack([move_agents(present[n], move.agents, move.shift.round().long(), FREE,
+                                              keep=~move.as_box.to(present.device)) for n, move in enumerate(moves)])
+        else:  # in fixed slots: every window at once
+            agents = {k: v if k == "columns" else torch.stack([m.agents[k] for m in moves])
+                      for k, v in moves[0].agents.items()}
+            shift = torch.stack([m.shift for m in moves]).round().long()
+            scenes = move_agents(present, agents, shift, FREE, keep=~torch.stack([m.as_box for m in moves]))
+        labels = unwarp_sequence(scenes, poses, fill=IGNORE)  # the agents drawn as boxes left their voxels
         self._fill_unseen(labels, scene.futures, poses)
         for n, move in enumerate(moves):
             if move.box_poses is not None:

@@ -219,3 +219,22 @@ def test_the_frames_of_several_windows_at_once_are_each_frame_alone():
                 assert torch.equal(got[key], alone[key]), (b, t, key)
     with pytest.raises(ValueError, match="need fixed slots"):
         frame_agents(frames, classes)
+
+
+def test_moving_several_windows_agents_at_once_is_each_window_alone():
+    from t3fast.agents.tracker import frame_agents, frame_of, move_agents
+    from t3fast.data.classes import AGENT_CLASSES
+    from t3fast.host_syncs import sync_free
+
+    frames, classes = torch.stack([_busy_frame(4), _busy_frame(5)]), torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    g = torch.Generator().manual_seed(6)
+    with sync_free():
+        every = frame_agents(frames, classes, slots=40)
+        shift = torch.randint(-6, 7, (2, 3, 40, 2), generator=g)
+        keep = torch.rand(2, 40, generator=g) > 0.3
+        for kept in (None, keep):
+            together = move_agents(frames, every, shift, FREE, keep=kept)
+            for b in range(2):
+                one = None if kept is None else kept[b]
+                alone = move_agents(frames[b], frame_of(every, b), shift[b], FREE, keep=one)
+                assert torch.equal(together[b], alone), b

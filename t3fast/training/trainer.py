@@ -218,6 +218,8 @@ class Trainer:
             log.warning("train.cuda_graph is off with float16 AMP (its loss scaler reads the device at every step): "
                         "the steps run eagerly")
             return False
+        if self.device.type != "cuda":
+            log.info("train.cuda_graph on %s: the graphed step runs without a graph", self.device)
         return True
 
     def _autocast(self) -> torch.autocast:

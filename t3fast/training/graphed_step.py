@@ -12,9 +12,10 @@ How a graphed step differs from an eager one:
   overwritten by the next replay (the trainer reads them first).
 * One graph per step variant: the task draws the host-side choices of a step before it runs
   (``Task.step_variant``, e.g. where a rollout starts), and the steps that share them, with
-  batches of one shape, replay one graph. A variant runs :data:`WARMUP` eager steps before it
-  is captured (lazy initialisation such as cuBLAS workspaces and the optimiser's state must not
-  be captured); they run on the side stream the graph is captured on.
+  batches of one :func:`layout` (tensor shapes, and any other values), replay one graph. A
+  variant runs :data:`WARMUP` eager steps before it is captured (lazy initialisation such as
+  cuBLAS workspaces and the optimiser's state must not be captured); they run on the side
+  stream the graph is captured on.
 * The step must not read the device on the host nor copy host data to it (both break a
   capture): the tasks that offer ``step_variant`` are held to this by tests on the CPU.
 * The optimiser is AdamW's fused kernel with its learning rates in device tensors (the
@@ -75,9 +76,22 @@ def map_tensors(obj: Any, fn: Callable[[Tensor], Tensor]) -> Any:
     return obj
 
 
-def layout(tensors: list[Tensor]) -> tuple:
-    """What a graph's static batch must share with a batch copied into it."""
-    return tuple((tuple(t.shape), t.dtype, t.device) for t in tensors)
+def layout(batch: Any) -> tuple:
+    """What a graph's static batch must share with a batch copied into it: each tensor's shape,
+    dtype and device, and every value that is not a tensor (a graph holds it as it was captured)."""
+    if isinstance(batch, Tensor):
+        return (tuple(batch.shape), batch.dtype, batch.device)
+    if isinstance(batch, Mapping):
+        return tuple((k, layout(v)) for k, v in batch.items())
+    if isinstance(batch, list | tuple):
+        return tuple(layout(v) for v in batch)
+    if dataclasses.is_dataclass(batch) and not isinstance(batch, type):
+        return tuple(layout(getattr(batch, f.name)) for f in dataclasses.fields(batch))
+    try:
+        hash(batch)
+    except TypeError:  # a value that cannot be compared cheaply: a layout of its own, never captured
+        return (type(batch).__name__, id(batch))
+    return (type(batch).__name__, batch)
 
 
 def tensor_learning_rates(optimizer: torch.optim.Optimizer, device: torch.device) -> None:
@@ -173,7 +187,7 @@ class GraphedStep:
     def __call__(self, batch: Any, variant: Hashable = None) -> dict[str, Tensor]:
         """One training step on ``batch``; the returned tensors stay valid until the next call."""
         tensors = tensors_of(batch)
-        key = (variant, layout(tensors))
+        key = (variant, layout(batch))
         captured = self._graphs.get(key)
         if captured is None and key not in self._failed and self._runs.get(key, 0) >= self.warmup:
             captured = self._capture(key, batch)

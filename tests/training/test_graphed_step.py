@@ -43,7 +43,8 @@ def test_tensors_of_and_map_tensors_keep_the_nesting() -> None:
     assert isinstance(doubled, Nested) and isinstance(doubled.pair, Pair) and doubled.label == "kept"
     assert doubled.pair.b[1] == 7 and doubled.missing is None
     assert [t.tolist() for t in tensors_of(doubled)] == [[0.0, 0.0], [2.0, 2.0, 2.0], [4.0], [0, 2, 4, 6]]
-    assert layout(tensors_of(doubled)) == layout(tensors_of(batch))
+    assert layout(doubled) == layout(batch)
+    assert layout(replace(batch, label="other")) != layout(batch)  # a value the graph would hold as captured
 
 
 class VariantToy(ToyTask):

@@ -195,7 +195,8 @@ class GraphedStep:
             self._runs[key] = self._runs.get(key, 0) + 1
             self.eager_steps += 1
             return self._eager(batch)
-        torch._foreach_copy_(captured.inputs, tensors)
+        if tensors:
+            torch._foreach_copy_(captured.inputs, tensors)
         self.replays += 1
         if captured.graph is None:
             return self.body(captured.batch)

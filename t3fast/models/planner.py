@@ -72,6 +72,11 @@ class TriplaneResNet(nn.Module):
         return self.fc(torch.cat([self.net(p) for p in triplane if p is not None], dim=1))
 
 
+def _stacked(triplanes: Sequence[Triplane]) -> Triplane:
+    """The triplanes of several steps as one batch: each plane ``[S * B, C, H, W]``."""
+    return Triplane(*(None if planes[0] is None else torch.cat(planes) for planes in zip(*triplanes)))
+
+
 def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     """The next displacement ``[B, 2]`` at constant speed and turn rate: the last displacement of
     ``actions`` ``[B, T, 2]`` turned by the angle between the last two (an arc, as the ego
@@ -140,11 +145,17 @@ class MotionPlanner(nn.Module):
         nn.init.zeros_(self.action_out.bias)
         self.steps = steps
 
-    def query(self, prev: Triplane, delta: Triplane, nxt: Triplane, step: int) -> Tensor:
-        """Q_a ``[B, d_act]`` of future step ``step`` from (previous, change, next) triplanes."""
-        z_p, dz, z_f = self.enc_prev(prev), self.enc_delta(delta), self.enc_next(nxt)
+    def queries(self, prevs: Sequence[Triplane], deltas: Sequence[Triplane], nexts: Sequence[Triplane],
+                first_step: int) -> Tensor:
+        """Q_a ``[S, B, d_act]`` of the S future steps from ``first_step`` on, from each step's
+        (previous, change, next) triplanes: the steps' triplanes go through each encoder together
+        (they do not depend on the actions, which are planned one step after another)."""
+        z_p, dz, z_f = (enc(_stacked(ts)) for enc, ts in ((self.enc_prev, prevs), (self.enc_delta, deltas),
+                                                             (self.enc_next, nexts)))
         fused = (self.gate_prev(dz) * z_p + dz + self.gate_next(dz) * z_f) / 3
-        return self.fc(fused) + self.future_queries[step]
+        # each step's learnable query (the last one's past the last): an index made on the device
+        steps = torch.arange(first_step, first_step + len(nexts), device=fused.device).clamp(max=self.steps - 1)
+        return self.fc(fused).view(len(nexts), -1, fused.shape[-1]) + self.future_queries[steps, None]
 
     def next_action(self, q_a: Tensor, actions: Tensor) -> Tensor:
         """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``: the observed
@@ -170,10 +181,11 @@ class MotionPlanner(nn.Module):
             past_actions: ``[B, T_p + first_step, 2]`` displacements so far, in the present frame.
             first_step: the future step of ``futures[0]``.
         """
-        actions, prev, out = past_actions, present, []
-        for k, (nxt, delta) in enumerate(zip(futures, deltas), start=first_step):
-            a = self.next_action(self.query(prev, delta, nxt, min(k, self.steps - 1)), actions)
+        if not futures:
+            return past_actions.new_zeros(past_actions.shape[0], 0, 2)
+        actions, out = past_actions, []
+        for q_a in self.queries([present, *futures[:-1]], deltas, futures, first_step):
+            a = self.next_action(q_a, actions)
             out.append(a)
             actions = torch.cat([actions, a.unsqueeze(1)], dim=1)
-            prev = nxt
         return torch.stack(out, dim=1)

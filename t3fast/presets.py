@@ -166,7 +166,7 @@ PRESETS: dict[str, Callable[[], RunConfig]] = {
     ),
     # full 6-step rollouts on the whole stage-2 loss; the windows encoded once (the encoder is
     # frozen) and read from the aligned cache with their labels: half a step's work on a CPU. On
-    # one GPU each step (about 72,000 ops) is replayed from a CUDA graph
+    # one GPU each step (about 25,500 kernels) is replayed from a CUDA graph
     "wm-paper": lambda: Stage2Config(
         autoencoder_ckpt="runs/ae-paper/best.pt",
         model=replace(world_model_size("paper"), ego_aligned=True),

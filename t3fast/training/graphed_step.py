@@ -1,8 +1,8 @@
 """A whole training step (forward, loss, backward, clipping, optimiser step) captured as one CUDA
 graph and replayed (``train.cuda_graph``): one launch a step instead of tens of thousands.
 
-A ``wm-paper`` step dispatches about 72,000 ops at any batch size (a 6-step rollout of the Delta
-forecaster and the planner's ResNets, their backward, one AdamW update per weight): run eagerly,
+A ``wm-paper`` step launches about 25,500 kernels at any batch size (a 6-step rollout of the
+Delta forecaster, the planner's ResNets, their backward and the fused AdamW update): run eagerly,
 the GPU waits on the host launching them. Replayed from a graph, the same kernels run back to back.
 
 How a graphed step differs from an eager one:

@@ -145,11 +145,8 @@ def slot_values(values: Tensor, column_slot: Tensor) -> Tensor:
     """Per column, its slot's row of ``values`` ``[..., n, *rest]``, and zeros for the columns off
     the agents (slot n, :func:`column_slots`): ``[..., N, *rest]`` for ``column_slot`` ``[..., N]``."""
     lead = column_slot.dim() - 1
-    padded = torch.cat([values, values.new_zeros(*values.shape[:lead], 1, *values.shape[lead + 1:])], dim=lead)
-    if not lead:
-        return padded[column_slot]
-    index = column_slot.view(*column_slot.shape, *(1,) * (values.dim() - lead - 1))
-    return torch.take_along_dim(padded, index, dim=lead)
+    return _gather(torch.cat([values, values.new_zeros(*values.shape[:lead], 1, *values.shape[lead + 1:])], dim=lead),
+                   column_slot)
 
 
 def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Tensor:
@@ -230,39 +227,26 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     if agents["cls"].shape[-1] == 0:
         return frames
     slot = (agents["ids"] - 1).clamp(min=0)  # [X, Y]: each column's slot (0 off the agents, masked)
-    if lead:
-        kept = agents["mask"] if keep is None else agents["mask"] & _gather(keep, slot.flatten(-2)).view(slot.shape)[
-            ..., None]
-        return _move_windows(frame, kept, slot, shift, frames)
-    paste = agents["mask"] if keep is None else agents["mask"] & keep[slot][..., None]
-    if reads_host(frame.device):
-        ijz = paste.nonzero()
-        moved = ijz[None, :, :2] + shift[:, slot[ijz[:, 0], ijz[:, 1]]]  # [S, V, 2]
-        inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
-        step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
-        z = ijz[None, :, 2].expand_as(inside)
-        frames[step[inside], moved[..., 0][inside], moved[..., 1][inside], z[inside]] = (
-            frame[paste].to(frames.dtype).expand(steps, -1)[inside])
-        return frames
-    # every voxel at once: each target voxel takes the label of the last source voxel landing on it
-    voxels = nx * ny * nz
-    d = shift[:, slot]  # [S, X, Y, 2]
-    i = torch.arange(nx, device=frame.device)[:, None] + d[..., 0]
-    j = torch.arange(ny, device=frame.device)[None, :] + d[..., 1]
-    inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [S, X, Y]
-    target = (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1))[..., None] * nz + torch.arange(nz, device=frame.device)
-    target = target + torch.arange(steps, device=frame.device).view(-1, 1, 1, 1) * voxels
-    target = torch.where(paste[None] & inside[..., None], target, steps * voxels)  # the last: dropped
-    source = torch.arange(voxels, device=frame.device).view(1, nx, ny, nz).expand_as(target)
-    winner = torch.full((steps * voxels + 1,), -1, dtype=torch.long, device=frame.device).scatter_reduce_(
-        0, target.flatten(), source.flatten(), "amax")[:-1].view(steps, nx, ny, nz)
-    return torch.where(winner >= 0, frame.flatten()[winner.clamp(min=0)], frames)
+    paste = agents["mask"] if keep is None else agents["mask"] & _gather(keep, slot.flatten(-2)).view(slot.shape)[
+        ..., None]
+    if not reads_host(frame.device) or lead:
+        return _paste_every_voxel(frame, paste, slot, shift, frames)
+    ijz = paste.nonzero()
+    moved = ijz[None, :, :2] + shift[:, slot[ijz[:, 0], ijz[:, 1]]]  # [S, V, 2]
+    inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
+    step = torch.arange(steps, device=ijz.device)[:, None].expand_as(inside)
+    z = ijz[None, :, 2].expand_as(inside)
+    frames[step[inside], moved[..., 0][inside], moved[..., 1][inside], z[inside]] = (
+        frame[paste].to(frames.dtype).expand(steps, -1)[inside])
+    return frames
 
 
-def _move_windows(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, frames: Tensor) -> Tensor:
-    """:func:`move_agents` of several windows' frames ``[..., X, Y, Z]`` at once, every voxel:
-    the voxels ``paste`` of each column's ``slot`` ``[..., X, Y]`` moved by its ``shift``
-    ``[..., S, n, 2]`` into the emptied ``frames`` ``[..., S, X, Y, Z]``."""
+def _paste_every_voxel(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, frames: Tensor) -> Tensor:
+    """:func:`move_agents` over every voxel at once, nothing read on the host (one window's frame
+    ``[X, Y, Z]`` or several ``[..., X, Y, Z]``): the voxels ``paste`` of each column's ``slot``
+    ``[..., X, Y]`` moved by its ``shift`` ``[..., S, n, 2]`` into the emptied ``frames``
+    ``[..., S, X, Y, Z]``; each target voxel takes the label of the last source voxel landing on
+    it."""
     lead, (nx, ny, nz) = frame.shape[:-3], frame.shape[-3:]
     windows, steps, voxels = math.prod(lead), shift.shape[-3], nx * ny * nz
     device = frame.device
@@ -272,7 +256,7 @@ def _move_windows(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, fra
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [..., S, X, Y]
     target = (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1))[..., None] * nz + torch.arange(nz, device=device)
     target = target + torch.arange(windows * steps, device=device).view(*lead, steps, 1, 1, 1) * voxels
-    target = torch.where(paste[..., None, :, :, :] & inside[..., None], target, windows * steps * voxels)
+    target = torch.where(paste[..., None, :, :, :] & inside[..., None], target, windows * steps * voxels)  # dropped
     source = torch.arange(windows * voxels, device=device).view(*lead, 1, nx, ny, nz).expand_as(target)
     winner = torch.full((windows * steps * voxels + 1,), -1, dtype=torch.long, device=device).scatter_reduce_(
         0, target.flatten(), source.flatten(), "amax")[:-1].view(frames.shape)

@@ -21,6 +21,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from t3fast.agents.boxes import AgentBoxes
+from t3fast.agents.tracker import column_slots, slot_values
 from t3fast.data.classes import (
     BARRIER,
     BICYCLE,
@@ -129,14 +130,8 @@ def context_map(present: Tensor, boxes: AgentBoxes, agent_ids: Tensor, ego_veloc
     groups = [in_classes(present, g).any(-1) for g in CONTEXT_GROUPS]
     ids = agent_ids.to(present.device)
     lead, (nx, ny) = ids.shape[:-2], ids.shape[-2:]
-    # row 0: off the agents; row 1 + i: agent i's velocity
-    v = boxes.velocity
-    per_agent = torch.cat([v.new_zeros(*v.shape[:-2], 1, 2), v], -2).float().to(ids.device)
-    if lead:
-        velocity = torch.take_along_dim(per_agent, ids.reshape(*lead, nx * ny, 1), dim=-2).view(*lead, nx, ny, 2)
-    else:
-        velocity = per_agent[ids]
-    velocity = velocity.movedim(-1, -3).contiguous()
+    v = boxes.velocity.float().to(ids.device)  # on each agent's columns, 0 elsewhere
+    velocity = slot_values(v, column_slots(ids, v.shape[-2])).view(*lead, nx, ny, 2).movedim(-1, -3).contiguous()
     footprint = _ego_footprint((nx, ny), ids.device)
     if footprint is not None:
         rows, cols, ego = footprint
@@ -171,14 +166,11 @@ def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
     last = device_constant([s - 1 for s in context.shape[-2:]], torch.float32, context.device)
     cells = (points - device_constant(GRID_LOWER[:2], torch.float32, context.device)) / VOXEL_SIZE - 0.5
     grid = (cells / last * 2 - 1).flip(-1)  # grid_sample's x indexes the last dim (Y)
-    if lead:  # one image per window, its agents' crops stacked along the rows
-        maps = context.reshape(-1, *context.shape[-3:])
-        views = F.grid_sample(maps, grid.reshape(maps.shape[0], n * CROP[0], CROP[1], 2), mode="bilinear",
-                              padding_mode="zeros", align_corners=True)
-        views = views.view(*lead, -1, n, *CROP).movedim(-3, -4)
-    else:
-        views = F.grid_sample(context.expand(n, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
-                              align_corners=True)
+    # one image per window, its agents' crops stacked along the rows
+    maps = context.reshape(-1, *context.shape[-3:])
+    views = F.grid_sample(maps, grid.reshape(maps.shape[0], n * CROP[0], CROP[1], 2), mode="bilinear",
+                          padding_mode="zeros", align_corners=True)
+    views = views.view(*lead, context.shape[-3], n, *CROP).movedim(-3, -4)
     v = rotate(views[..., -2:, :, :].movedim(-3, -1), -h).movedim(-1, -3)
     return torch.cat([views[..., :-2, :, :], v], -3)
 

@@ -62,6 +62,7 @@ from t3fast.training.distributed import (
     rank,
     world_size,
 )
+from t3fast.training.gathered import held_on_device
 from t3fast.training.graphed_step import (
     WARMUP,
     GraphedStep,
@@ -126,12 +127,16 @@ class Trainer:
         self.sampler = ResumableBatchSampler(len(dataset), cfg.batch_size, cfg.seed, self.rank, self.world)
         # a private generator: the loader's per-epoch worker seed must not draw from the global stream
         self._loader_gen = torch.Generator()
+        on_device = held_on_device(dataset)
+        if on_device and cfg.num_workers:
+            log.info("train.num_workers=%d unused: the batches are gathered on %s, where workers cannot reach",
+                     cfg.num_workers, self.device)
         self.loader = DataLoader(
             dataset,
             batch_sampler=self.sampler,
             collate_fn=task.collate,
-            num_workers=cfg.num_workers,
-            pin_memory=self.device.type == "cuda",
+            num_workers=0 if on_device else cfg.num_workers,
+            pin_memory=self.device.type == "cuda" and not on_device,
             generator=self._loader_gen,
             worker_init_fn=ignore_sigint,
         )

@@ -70,8 +70,11 @@ def _box_config(world_ckpt, root: Path, frames: int = 11, stride: int = 1, scene
     return BoxMotionConfig(world_model=str(world_ckpt), data=data)
 
 
-def _box_samples(samples) -> list[Tensor]:
-    return [samples.views, *samples.fields.values()]
+def _box_samples(cfg: BoxMotionConfig) -> list[Tensor]:
+    """The training agents' fields the box motion task reads (fitted, or read from the cache)."""
+    task = BoxMotionTask(cfg)
+    task.build_model()  # the agents are held on its device
+    return list(task.train_dataset().fields.values())
 
 
 @dataclass
@@ -99,7 +102,7 @@ def _load(name: str, model, world_ckpt, root: Path, split: str = "train", frames
     """What the cache ``name`` in ``root`` reads back, built where needed (by default: two
     windows of one scene, or for box motion, one window of each of two scenes)."""
     if name == "box":
-        return _box_samples(BoxMotionTask(_box_config(world_ckpt, root, frames or 11, stride)).train_dataset())
+        return _box_samples(_box_config(world_ckpt, root, frames or 11, stride))
     return CASES[name].load(model, root, split, frames or 12, stride)
 
 
@@ -270,13 +273,13 @@ def test_an_interrupted_box_cache_keeps_the_scenes_it_fitted(world_ckpt, tmp_pat
     cfg = _box_config(world_ckpt, tmp_path / "cache", frames=12)  # two windows a scene
     monkeypatch.setattr(box_cache, "window_record", record)
     with pytest.raises(_Interrupted):
-        BoxMotionTask(cfg).train_dataset()
+        _box_samples(cfg)
     fitted.clear()
-    resumed = _box_samples(BoxMotionTask(cfg).train_dataset())
+    resumed = _box_samples(cfg)
     assert len(fitted) == 2  # the second scene's two windows only
     monkeypatch.setattr(box_cache, "window_record", real)
     fresh = _box_config(world_ckpt, tmp_path / "fresh", frames=12)
-    _assert_same(resumed, _box_samples(BoxMotionTask(fresh).train_dataset()))
+    _assert_same(resumed, _box_samples(fresh))
 
 
 def test_every_box_cache_write_has_its_own_temporary_file(world_ckpt, tmp_path, monkeypatch):
@@ -285,9 +288,9 @@ def test_every_box_cache_write_has_its_own_temporary_file(world_ckpt, tmp_path, 
     real = os.replace
     monkeypatch.setattr(os, "replace", lambda src, dst: (moves.append((Path(src), Path(dst))), real(src, dst))[1])
     cfg = _box_config(world_ckpt, tmp_path / "cache", scenes=1)
-    BoxMotionTask(cfg).train_dataset()
+    _box_samples(cfg)
     shutil.rmtree(tmp_path / "cache")
-    BoxMotionTask(cfg).train_dataset()
+    _box_samples(cfg)
     assert len(moves) >= 2
     assert len({src for src, _ in moves}) == len(moves)
     assert all(src.parent == dst.parent for src, dst in moves)

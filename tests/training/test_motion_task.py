@@ -14,7 +14,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.forecast.agents import measured_velocities
-from t3fast.host_syncs import SyncCounter
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.flow_forecaster import tracker_motion
@@ -73,6 +73,29 @@ def test_the_heads_forward_is_the_forecasters_motion(cached):
     assert not torch.allclose(alone, tracker_motion(batch.velocity, alone.shape[1]))
 
 
+def test_a_batch_made_as_on_a_gpu_keeps_every_padded_agent_and_the_same_loss(cached, world_ckpt):
+    """Where the host may not read (a GPU), a batch keeps every agent the split pads to (its
+    shapes do not depend on its data); on the CPU it keeps those its cells name. The padded
+    agents are never visible: the loss is the same."""
+    _, _, cache = cached
+    batches = cache.batches()
+    task = MotionTask(MotionConfig(world_model=str(world_ckpt)))
+    model = task.build_model()
+    torch.nn.init.normal_(model.forecaster.motion_head.head[-1].weight, std=0.1)
+    trimmed_any = False
+    for i in range(len(batches)):
+        index = torch.tensor([i])
+        trimmed = batches.take(index)
+        with sync_free():
+            padded = batches.take(index)
+        assert padded.targets.motion.shape[2] == batches.fields["motion"].shape[2]
+        trimmed_any |= trimmed.targets.motion.shape[2] < padded.targets.motion.shape[2]
+        displacements = model(trimmed.velocity, trimmed.present, trimmed.previous)
+        torch.testing.assert_close(motion_head_loss(displacements, padded.targets, task.cfg),
+                                   motion_head_loss(displacements, trimmed.targets, task.cfg))
+    assert trimmed_any, "a window with fewer agents than the split's most should be trimmed on the CPU"
+
+
 def test_a_missing_scene_is_named(world_ckpt, tmp_path):
     cache = MotionCache(SyntheticDriving("train", 1, 12), load_world_model(world_ckpt), tmp_path)
     with pytest.raises(FileNotFoundError, match="1 scenes are not cached"):
@@ -125,8 +148,10 @@ def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
     opt = torch.optim.Adam(model.forecaster.motion_head.parameters(), lr=3e-3)
     with SyncCounter() as counter:  # the logged values are read by the trainer after the backward
         task.training_step(model, batch)
+        mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
     assert dict(counter.by_caller) == {"training/motion/task.py:training_step": 1}
+    assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
     for _ in range(200):
         loss, _ = task.training_step(model, batch)
         opt.zero_grad()

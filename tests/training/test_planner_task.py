@@ -174,8 +174,10 @@ def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_o
     torch.testing.assert_close(planner(*batch.inputs()), model(*batch.inputs())[0][:, 1])
     with SyncCounter() as counter:  # the logged values are read by the trainer after the backward
         loss, values = task.training_step(model, batch)
+        mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
     assert dict(counter.by_caller) == {"training/planner/task.py:training_step": 1}
+    assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
     assert {"closest_l2", "mode_choice"} <= set(values) and torch.isfinite(loss)
     loss.backward()
     assert planner.head[-1].weight.grad.abs().sum() > 0

@@ -24,13 +24,13 @@ from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
 from t3fast.pretrained import export_weights, load_world_model
 from t3fast.training.configs import WorldLossConfig
+from t3fast.training.gathered import fits_on
 from t3fast.training.graphed_step import WARMUP
 from t3fast.training.trainer import Trainer
 from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.latent_cache import (
     LabelledAlignedWindows,
     ResidentAlignedWindows,
-    fits_on,
     resident_bytes,
 )
 from t3fast.training.world_model.loss import rollout_loss

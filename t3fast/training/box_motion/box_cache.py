@@ -21,7 +21,6 @@ from pathlib import Path
 
 import torch
 from torch import Tensor
-from torch.utils.data import Dataset
 
 from t3fast.agents import box_kinematics, boxes, tracker
 from t3fast.agents.box_kinematics import (
@@ -39,6 +38,7 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models.ego_motion import planar_poses, wrap_angle
 from t3fast.ops import reference
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
+from t3fast.training.gathered import GatheredBatches
 
 MATCH_METRES = 1.0
 GROUPS = len(box_kinematics.CONTEXT_GROUPS)
@@ -150,31 +150,20 @@ class BoxCache(SceneFiles):
         return out
 
 
-class BoxMotionSamples(Dataset):
+class BoxMotionSamples(GatheredBatches):
     """The agents of cached windows, flat, each with its view of its window
-    (:func:`~t3fast.agents.box_kinematics.crop_context`, float16)."""
+    (:func:`~t3fast.agents.box_kinematics.crop_context`, float16) and its :data:`AGENT_FIELDS`,
+    held on ``device`` where they fit; a batch is the dict of those fields, ``views``
+    ``[n, CONTEXT_CHANNELS, *CROP]`` first."""
 
-    def __init__(self, records: list[dict[str, Tensor]]):
+    def __init__(self, records: list[dict[str, Tensor]], device: torch.device | str = "cpu"):
         counts = [r["centre"].shape[0] for r in records]
         # filled in place: a list of every window's views and their concatenation would hold
         # them twice (1,620 scenes: 6.7 GB each, beside the records' 4.7 GB of context maps)
-        self.views = torch.empty(sum(counts), CONTEXT_CHANNELS, *CROP, dtype=torch.float16)
+        views = torch.empty(sum(counts), CONTEXT_CHANNELS, *CROP, dtype=torch.float16)
         start = 0
         for r, n in zip(records, counts):
             context = torch.cat([r["groups"].float(), r["velocity_map"].float()])
-            self.views[start : start + n] = crop_context(context, r["centre"], r["heading"])
+            views[start : start + n] = crop_context(context, r["centre"], r["heading"])
             start += n
-        self.fields = {k: torch.cat([r[k] for r in records]) for k in AGENT_FIELDS}
-
-    def __len__(self) -> int:
-        return self.views.shape[0]
-
-    def __getitem__(self, index: int) -> dict[str, Tensor]:
-        return self.__getitems__([index])[0]
-
-    def __getitems__(self, indices: list[int]) -> list[dict[str, Tensor]]:
-        """The agents ``indices`` one by one (what ``__getitem__`` gives), gathered at once: the
-        DataLoader fetches a whole batch through this."""
-        index = torch.as_tensor(indices)
-        batch = {"views": self.views[index], **{k: v[index] for k, v in self.fields.items()}}
-        return [{k: v[i] for k, v in batch.items()} for i in range(len(indices))]
+        super().__init__({"views": views, **{k: torch.cat([r[k] for r in records]) for k in AGENT_FIELDS}}, device)

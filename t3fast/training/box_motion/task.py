@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from t3fast.agents.box_kinematics import corrected_motion, mirror_kinematics, mirror_views, rotate
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.data.synthetic.dataset import SPLIT_SIZE
+from t3fast.device_constants import device_constant
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
@@ -47,7 +48,8 @@ def mirror_agents(batch: dict[str, Tensor], flip: Tensor) -> dict[str, Tensor]:
         shape = (-1,) + (1,) * (value.dim() - 2)
         heading = batch["heading"].view(shape).expand(value.shape[:-1])
         local = rotate(value, -heading)
-        local = torch.where(flip.view(*shape, 1), local * local.new_tensor([1.0, -1.0]), local)
+        mirrored = local * device_constant((1.0, -1.0), local.dtype, local.device)
+        local = torch.where(flip.view(*shape, 1), mirrored, local)
         out[key] = rotate(local, heading)
     out["turn"] = torch.where(flip[:, None], -batch["turn"], batch["turn"])
     return out
@@ -86,6 +88,7 @@ class BoxMotionTask:
         if not self._state["config"]["task"].get("model", {}).get("agent_boxes"):
             raise ConfigError(f"world_model {self.cfg.world_model!r} does not draw fitted boxes: train-box-motion "
                               "needs model.agent_boxes = true")
+        self._model: nn.Module | None = None
         self._select: BoxMotionSamples | None = None
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
 
@@ -95,28 +98,34 @@ class BoxMotionTask:
         model = world_model_from_checkpoint(self._state, self.cfg.world_model, BoxMotionTraining)
         model.requires_grad_(False)
         model.box_motion = BoxMotionNet(model.forecaster.history, model.forecaster.steps)
+        self._model = model
         return model
 
-    def _samples(self, first: int, count: int, name: str) -> BoxMotionSamples:
+    def _samples(self, first: int, count: int, name: str, device: torch.device) -> BoxMotionSamples:
+        """The agents of ``count`` scenes from scene ``first``, held on ``device`` where they fit."""
         data = self.cfg.data
         windows = SyntheticDriving("train", first + count, data.frames_per_scene, stride=data.stride)
         cache = BoxCache(windows, data.cache_dir, range(first, first + count), desc=f"box fits ({name})")
         # rank 0 fits (or reads) the records; the others read what it wrote
         records = cache.records() if is_main() else None
         barrier()
-        return BoxMotionSamples(records if records is not None else cache.records(progress=False))
+        return BoxMotionSamples(records if records is not None else cache.records(progress=False), device)
 
     def train_dataset(self) -> BoxMotionSamples:
-        return self._samples(0, self.cfg.data.train_scenes, "train")
+        if self._model is None:
+            raise RuntimeError("build_model() must run before the agents are read")
+        return self._samples(0, self.cfg.data.train_scenes, "train", next(self._model.parameters()).device)
 
-    def collate(self, items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
-        return {key: torch.stack([item[key] for item in items]) for key in items[0]}
+    def collate(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        return batch  # gathered already collated (BoxMotionSamples)
 
     def samples_in(self, batch: dict[str, Tensor]) -> int:
         return batch["views"].shape[0]
 
     def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
-        flip = (torch.rand(self.samples_in(batch), generator=self._generator) < 0.5).to(batch["views"].device)
+        # drawn on the host (a CPU generator's stream), copied without waiting for the device
+        flip = torch.rand(self.samples_in(batch), generator=self._generator) < 0.5
+        flip = flip.to(batch["views"].device, non_blocking=True)
         batch = mirror_agents(batch, flip)
         correction = model(batch["views"].float(), batch["features"])
         loss = class_balanced_mean(agent_errors(correction, batch), batch)
@@ -128,11 +137,12 @@ class BoxMotionTask:
         """On the held-out scenes' agents, the class-balanced landing error (metres) of the
         network's boxes and of the box tracker's, over all steps and at 1, 2 and 3 s;
         ``ratio``: network / tracker; ``score``: minus the network's error."""
-        if self._select is None:
-            self._select = self._samples(self.cfg.data.train_scenes, self.cfg.data.select_scenes, "select")
         device = next(model.parameters()).device
-        fields = {k: v.to(device) for k, v in self._select.fields.items()}
-        corrections = torch.cat([model.box_motion(self._select.views[i : i + VAL_CHUNK].to(device).float(),
+        if self._select is None:
+            self._select = self._samples(self.cfg.data.train_scenes, self.cfg.data.select_scenes, "select", device)
+        fields = {k: v.to(device) for k, v in self._select.fields.items() if k != "views"}
+        views = self._select.fields["views"]
+        corrections = torch.cat([model.box_motion(views[i : i + VAL_CHUNK].to(device).float(),
                                                   fields["features"][i : i + VAL_CHUNK])
                                  for i in range(0, len(self._select), VAL_CHUNK)])
         values = {}

@@ -26,10 +26,12 @@ from torch.nn import functional as F
 from t3fast.data.sample import NUM_FUTURE, PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.forecast.agents import measured_velocities
+from t3fast.host_syncs import reads_host
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.flow_forecaster import FlowTriplaneForecaster
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
+from t3fast.training.gathered import GatheredBatches
 from t3fast.training.planner.plan_cache import PlanCache
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_targets
 from t3fast.training.world_model.motion_targets import agent_motion
@@ -127,7 +129,9 @@ class MotionCache(SceneFiles):
         poses = planar_poses(sample.ego_poses[None], PRESENT)[:, recent].to(device)
         return measured_velocities(sample.occ[None, recent].to(device), poses, self._plane)
 
-    def _load(self) -> dict[str, Tensor]:
+    def batches(self, device: torch.device | str = "cpu") -> MotionBatches:
+        """The windows gathered a batch at a time, on ``device`` where they fit; the per-agent
+        fields padded to the split's most agents."""
         if self._data is None:
             parts = self.read_scenes()
             agents = max(p["motion"].shape[2] for p in parts)
@@ -137,18 +141,26 @@ class MotionCache(SceneFiles):
                 "visible": torch.cat([_pad_agents(p["visible"], agents) for p in parts]),
                 "motion": torch.cat([_pad_agents(p["motion"], agents) for p in parts]),
             }
-        return self._data
-
-    def __getitem__(self, index: int) -> tuple[Tensor, ...]:
-        """(xy planes float16 ``[2, C, H, W]`` (previous, present), velocity ``[4, H, W]``, the
-        :class:`AgentTargets` fields ``cells`` int16 ``[H, W]``, ``visible`` ``[S, A]``,
-        ``motion`` ``[S, A, 2]``; A padded to the split's largest)."""
-        data = self._load()
-        return (self.planes[index][0], *(data[k][index] for k in ("velocity", "cells", "visible", "motion")))
+        return MotionBatches({"xy": self.planes.data()["xy"], **self._data}, device)
 
     def all(self) -> MotionWindows:
         """Every window at once."""
-        return collate_motion([self[i] for i in range(len(self))])
+        return self.batches().all()
+
+
+class MotionBatches(GatheredBatches):
+    """A :class:`MotionCache`'s windows as the motion head reads them (:class:`MotionWindows`,
+    planes back to float32). Where the host may read (:func:`~t3fast.host_syncs.reads_host`)
+    a batch keeps only the agents its cells name; elsewhere every padded agent (never visible),
+    so the batch's shapes do not depend on its data."""
+
+    def batch(self, rows: dict[str, Tensor]) -> MotionWindows:
+        xy, cells = rows["xy"].float(), rows["cells"].long()
+        visible, motion = rows["visible"], rows["motion"]
+        if reads_host(self.device):
+            agents = max(int(cells.max()) + 1, 1)
+            visible, motion = visible[:, :, :agents], motion[:, :, :agents]
+        return MotionWindows(xy[:, 1], xy[:, 0], rows["velocity"], AgentTargets(cells, visible, motion))
 
 
 def scene_targets(boxes: list[Tensor], box_valid: list[Tensor], velocity: Tensor) -> dict[str, Tensor]:
@@ -164,11 +176,3 @@ def scene_targets(boxes: list[Tensor], box_valid: list[Tensor], velocity: Tensor
             "motion": _pad_agents(t.motion, agents)}
 
 
-def collate_motion(items: list[tuple[Tensor, ...]]) -> MotionWindows:
-    """Stack cached windows (planes back to float32), trimming the agents no window's cell belongs to."""
-    xy = torch.stack([it[0] for it in items]).float()
-    cells = torch.stack([it[2] for it in items]).long()
-    agents = max(int(cells.max()) + 1, 1)
-    targets = AgentTargets(cells, torch.stack([it[3] for it in items])[:, :, :agents],
-                           torch.stack([it[4] for it in items])[:, :, :agents])
-    return MotionWindows(xy[:, 1], xy[:, 0], torch.stack([it[1] for it in items]), targets)

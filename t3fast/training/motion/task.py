@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.device_constants import device_constant
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
@@ -33,7 +34,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import MotionConfig
 from t3fast.training.distributed import barrier, is_main
-from t3fast.training.motion.motion_cache import MotionCache, MotionWindows, collate_motion
+from t3fast.training.motion.motion_cache import MotionBatches, MotionCache, MotionWindows
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, flow_terms, masked_mean
 
 VAL_CHUNK = 50  # validation windows per forward pass
@@ -43,9 +44,10 @@ HORIZONS = {name: steps - 1 for name, steps in STEPS_AT.items()}  # future step 
 def mirror_left_right(batch: MotionWindows) -> MotionWindows:
     """The windows mirrored across the ego's x axis: planes, velocities and the agents' cells
     flipped along y (the W axis), the y components of the velocities and motions negated."""
-    sign = batch.velocity.new_tensor([1.0, -1.0, 1.0, -1.0]).view(1, 4, 1, 1)
+    sign = device_constant((1.0, -1.0, 1.0, -1.0), batch.velocity.dtype, batch.velocity.device).view(1, 4, 1, 1)
     t = batch.targets
-    targets = AgentTargets(t.cells.flip(-1), t.visible, t.motion * t.motion.new_tensor([1.0, -1.0]))
+    motion = t.motion * device_constant((1.0, -1.0), t.motion.dtype, t.motion.device)
+    targets = AgentTargets(t.cells.flip(-1), t.visible, motion)
     return MotionWindows(batch.present.flip(-1), batch.previous.flip(-1), batch.velocity.flip(-1) * sign, targets)
 
 
@@ -103,11 +105,12 @@ class MotionTask:
         barrier()
         return cache
 
-    def train_dataset(self) -> MotionCache:
-        return self._cache("train", self.cfg.data.train_scenes)
+    def train_dataset(self) -> MotionBatches:
+        """The training windows, held on the model's device where they fit."""
+        return self._cache("train", self.cfg.data.train_scenes).batches(next(self._model.parameters()).device)
 
-    def collate(self, items: list) -> MotionWindows:
-        return collate_motion(items)
+    def collate(self, batch: MotionWindows) -> MotionWindows:
+        return batch  # gathered already collated (MotionBatches)
 
     def samples_in(self, batch: MotionWindows) -> int:
         return len(batch)

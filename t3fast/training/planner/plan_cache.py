@@ -26,6 +26,7 @@ from t3fast.data.synthetic import SyntheticDriving
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import Field, Layout, Payload, SceneFiles, world_digest
+from t3fast.training.gathered import GatheredBatches
 from t3fast.training.triplane_cache import encoder_digest
 
 PLAN_CACHE_FORMAT = 3  # 2: checked entry files; 3: the encoder's stem as label_conv3d (planes moved by up to 0.04)
@@ -107,27 +108,29 @@ class PlanCache(SceneFiles):
         return torch.cat([encode.planes(occ[i : i + ENCODE_WINDOWS], poses[i : i + ENCODE_WINDOWS]).xy
                           for i in range(0, len(samples), ENCODE_WINDOWS)])
 
-    def _load(self) -> dict[str, Tensor]:
+    def data(self) -> dict[str, Tensor]:
+        """Every window's fields, read once: ``xy`` float16 ``[N, 2, C, H, W]`` (previous,
+        present), ``past_actions`` ``[N, 4, 2]``, ``future_actions`` ``[N, 6, 2]``."""
         if self._data is None:
             parts = self.read_scenes()
             self._data = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
         return self._data
 
-    def __getitem__(self, index: int) -> tuple[Tensor, Tensor, Tensor]:
-        """(xy planes float16 ``[2, C, H, W]`` (previous, present), past ``[4, 2]``, future ``[6, 2]``)."""
-        data = self._load()
-        return data["xy"][index], data["past_actions"][index], data["future_actions"][index]
+    def batches(self, device: torch.device | str = "cpu") -> PlanBatches:
+        """The windows gathered a batch at a time, on ``device`` where they fit."""
+        data = self.data()
+        return PlanBatches({**data, "command": route_command(data["future_actions"])}, device)
 
     def all(self) -> PlanWindows:
-        """Every window at once, as the planner reads them, with the command derived from the
-        future (:func:`~t3fast.data.route.route_command`)."""
-        data = self._load()
-        return collate_plan([(data["xy"][i], data["past_actions"][i], data["future_actions"][i])
-                             for i in range(len(self))])
+        """Every window at once, as the planner reads them."""
+        return self.batches().all()
 
 
-def collate_plan(items: list[tuple[Tensor, Tensor, Tensor]]) -> PlanWindows:
-    """Stack cached windows (planes back to float32) with their route commands."""
-    xy = torch.stack([x for x, _, _ in items]).float()
-    future = torch.stack([f for _, _, f in items])
-    return PlanWindows(xy[:, 1], xy[:, 0], torch.stack([p for _, p, _ in items]), future, route_command(future))
+class PlanBatches(GatheredBatches):
+    """A :class:`PlanCache`'s windows as the planner reads them (:class:`PlanWindows`, planes
+    back to float32), with the route command derived from the future
+    (:func:`~t3fast.data.route.route_command`)."""
+
+    def batch(self, rows: dict[str, Tensor]) -> PlanWindows:
+        xy = rows["xy"].float()
+        return PlanWindows(xy[:, 1], xy[:, 0], rows["past_actions"], rows["future_actions"], rows["command"])

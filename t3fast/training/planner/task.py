@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from t3fast.data.route import mirror_command
 from t3fast.data.synthetic import SyntheticDriving
+from t3fast.device_constants import device_constant
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import l2_summary
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
@@ -31,7 +32,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.configs import PlannerConfig
 from t3fast.training.distributed import barrier, is_main
-from t3fast.training.planner.plan_cache import PlanCache, PlanWindows, collate_plan
+from t3fast.training.planner.plan_cache import PlanBatches, PlanCache, PlanWindows
 from t3fast.training.world_model.plan_loss import drop_commands, plan_error
 
 
@@ -39,7 +40,7 @@ def mirror_left_right(batch: PlanWindows) -> PlanWindows:
     """The windows mirrored across the ego's x axis: planes flipped along y, y displacements
     negated, left and right turns swapped (the command follows the mirrored future)."""
     def flip_y(actions: Tensor) -> Tensor:
-        return actions * actions.new_tensor([1.0, -1.0])
+        return actions * device_constant((1.0, -1.0), actions.dtype, actions.device)
 
     return PlanWindows(batch.present.flip(-1), batch.previous.flip(-1), flip_y(batch.past_actions),
                        flip_y(batch.future_actions), mirror_command(batch.command))
@@ -102,11 +103,12 @@ class PlannerTask:
         barrier()
         return cache
 
-    def train_dataset(self) -> PlanCache:
-        return self._cache("train", self.cfg.data.train_scenes)
+    def train_dataset(self) -> PlanBatches:
+        """The training windows, held on the model's device where they fit."""
+        return self._cache("train", self.cfg.data.train_scenes).batches(next(self._model.parameters()).device)
 
-    def collate(self, items: list) -> PlanWindows:
-        return collate_plan(items)
+    def collate(self, batch: PlanWindows) -> PlanWindows:
+        return batch  # gathered already collated (PlanBatches)
 
     def samples_in(self, batch: PlanWindows) -> int:
         return batch.present.shape[0]

@@ -169,12 +169,13 @@ class LabelledAlignedWindows(Dataset):
 
 class ResidentAlignedWindows(Dataset):
     """:class:`LabelledAlignedWindows` held in ``device`` memory (a GPU's, where they fit:
-    :func:`fits_on`): each scene's frames and poses once, each window's planes in float16 and
-    actions; a batch is gathered on the device, already collated (``__getitems__``), so the
-    step reads nothing from disk or the host."""
+    :func:`~t3fast.training.gathered.fits_on`): each scene's frames and poses once, each
+    window's planes in float16 and actions; a batch is gathered on the device, already collated
+    (``__getitems__``), so the step reads nothing from disk or the host."""
 
     def __init__(self, labelled: LabelledAlignedWindows, device: torch.device, progress: bool = True):
         windows = labelled.cache.windows
+        self.device = device  # where the batches are made (the trainer's loader reads it)
         scenes, frames = len(windows.scenes), windows.scenes.frames_per_scene
         first = windows[0]
         self.occ = torch.empty(scenes, frames, *first.occ.shape[1:], dtype=first.occ.dtype, device=device)
@@ -214,13 +215,6 @@ def resident_bytes(labelled: LabelledAlignedWindows) -> int:
     per_frame = first.occ[0].numel() * first.occ.element_size() + 16 * first.ego_poses.element_size()
     per_window = 2 * sum(p.numel() for p in planes if p is not None) + 20 * first.past_actions.element_size()
     return frames * per_frame + len(windows) * per_window
-
-
-def fits_on(device: torch.device, size: int, share: float = 0.25) -> bool:
-    """Whether ``size`` bytes are at most ``share`` of a GPU's free memory (the rest is the
-    model's, its activations' and the allocator's); never on the CPU, where the windows are
-    read from disk by the loader instead."""
-    return device.type == "cuda" and size <= share * torch.cuda.mem_get_info(device)[0]
 
 
 @dataclass

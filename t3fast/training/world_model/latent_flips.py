@@ -13,11 +13,18 @@ from __future__ import annotations
 import math
 
 import torch
+from torch import Tensor
 
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
+from t3fast.device_constants import device_constant
 from t3fast.models.ego_motion import wrap_angle
 from t3fast.models.triplane import Triplane
 from t3fast.training.world_model.latent_cache import AlignedBatch
+
+
+def _signs(pair: tuple[float, float], velocity: Tensor) -> Tensor:
+    """``pair`` for each (x, y) channel pair of ``velocity`` ``[B, 2k, H, W]``: ``[2k, 1, 1]``."""
+    return device_constant(pair * (velocity.shape[1] // 2), velocity.dtype, velocity.device).view(-1, 1, 1)
 
 
 def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: bool) -> AlignedBatch:
@@ -32,12 +39,12 @@ def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: boo
     yaw = boxes[..., 6]
     if flip_x:
         xy, xz = xy.flip(-2), None if xz is None else xz.flip(-2)
-        velocity = velocity.flip(-2) * velocity.new_tensor([-1.0, 1.0]).repeat(velocity.shape[1] // 2).view(-1, 1, 1)
+        velocity = velocity.flip(-2) * _signs((-1.0, 1.0), velocity)
         boxes[..., 0], yaw = -boxes[..., 0], math.pi - yaw
         past[..., 0], future[..., 0] = -past[..., 0], -future[..., 0]
     if flip_y:
         xy, yz = xy.flip(-1), None if yz is None else yz.flip(-2)
-        velocity = velocity.flip(-1) * velocity.new_tensor([1.0, -1.0]).repeat(velocity.shape[1] // 2).view(-1, 1, 1)
+        velocity = velocity.flip(-1) * _signs((1.0, -1.0), velocity)
         boxes[..., 1], yaw = -boxes[..., 1], -yaw
         past[..., 1], future[..., 1] = -past[..., 1], -future[..., 1]
     if transpose:

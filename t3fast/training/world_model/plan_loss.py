@@ -42,7 +42,8 @@ def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Gen
 
 def drop_commands(command: Tensor, share: float, generator: torch.Generator | None = None) -> Tensor:
     """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``."""
-    dropped = (torch.rand(command.shape, generator=generator) < share).to(command.device)
+    # drawn on the host (a CPU generator's stream), copied without waiting for the device
+    dropped = (torch.rand(command.shape, generator=generator) < share).to(command.device, non_blocking=True)
     return torch.where(dropped, torch.full_like(command, -1), command)
 
 

@@ -20,6 +20,7 @@ from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve
 from t3fast.training.configs import Stage2Config
 from t3fast.training.distributed import barrier, is_main
+from t3fast.training.gathered import fits_on
 from t3fast.training.triplane_cache import cached_scene_triplanes
 from t3fast.training.world_model.delta_loss import delta_rollout_loss
 from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
@@ -30,7 +31,6 @@ from t3fast.training.world_model.latent_cache import (
     LabelledAlignedWindows,
     ResidentAlignedWindows,
     collate_aligned,
-    fits_on,
     resident_bytes,
 )
 from t3fast.training.world_model.latent_flips import random_flips

@@ -15,7 +15,7 @@ from benchmarks.gpu import report as gpu_report
 from benchmarks.gpu import run as gpu_run
 
 ROOT = Path(__file__).resolve().parents[1]
-STAGES = ["env", "build", "tests", "ops", "forecast", "demo", "train_ae", "train_wm"]
+STAGES = ["env", "build", "tests", "ops", "forecast", "demo", "train_ae", "train_wm", "train_shipped"]
 
 
 @pytest.mark.slow
@@ -46,6 +46,9 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
     wm = json.loads((out / "train_wm" / "result.json").read_text())
     assert wm["cuda_graph"]["replays"] > 0 and not wm["cuda_graph"]["failures"]  # on a CPU: no graph, the same step
     assert json.loads((out / "train_wm" / "eager" / "result.json").read_text())["cuda_graph"] is None
+    for name, command in gpu_run.SHIPPED.items():  # each preset behind the shipped model trained a few steps
+        burst = json.loads((out / "train_shipped" / name / "result.json").read_text())
+        assert burst["command"][:3] == command[:3] and burst["steps"] >= 2 and burst["samples_per_s"] > 0, name
 
     text = subprocess.run([sys.executable, "-m", "benchmarks.gpu.report", str(out)], cwd=ROOT, capture_output=True,
                           text=True, check=True, timeout=60).stdout
@@ -53,6 +56,7 @@ def test_dry_run_passes_every_stage_and_reports(tmp_path):
         assert heading in text
     assert "| decode grid fwd paper |" in text and "| tiny | eager |" in text
     assert "| train-ae --config small | 2 x cpu | gloo |" in text
+    assert "| train-box-motion --config small | 1 x cpu | gloo |" in text
 
 
 def test_a_stage_past_its_limit_is_killed_and_the_next_still_runs(tmp_path):

@@ -168,7 +168,8 @@ def forecast_section(out: Path) -> list[str]:
 
 def training_section(out: Path) -> list[str]:
     body = []
-    for stage in ("train_ae", "train_wm", "train_wm/eager"):
+    shipped = sorted(str(p.parent.relative_to(out)) for p in out.glob("train_shipped/*/result.json"))
+    for stage in ("train_ae", "train_wm", "train_wm/eager", *shipped):
         r = _read_json(out / stage / "result.json")
         if r is None:  # killed before rank 0 wrote it: what the trainer had logged
             windows = [e["values"]["samples_per_s"] for e in _read_jsonl(out / stage / "run" / "metrics.jsonl")
@@ -191,7 +192,8 @@ def training_section(out: Path) -> list[str]:
     return _table(header, body, {4, 5, 7, 8}) + [
         "", "samples/s: median over the logged windows after the first (warm-up and capture), all processes "
             "together. CUDA graphs: the steps replayed from graphs (`train.cuda_graph`; on a CPU the same step "
-            "without a graph)."
+            "without a graph). `train_shipped`: the presets behind the shipped model, each on the few scenes "
+            "that fill its batch."
     ] + profile_lines(out)
 
 

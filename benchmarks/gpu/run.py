@@ -17,6 +17,8 @@ Stages, each with its own time limit and each run whatever happened before it:
   train_ae  a timed burst of ``t3fast train-ae --config paper`` under torchrun (NCCL, AMP)
   train_wm  the same for ``t3fast train-wm --config paper``, its steps replayed from CUDA graphs
             on one process, then a shorter burst of eager steps to hold them against
+  train_shipped  a short burst of each preset behind the shipped model (stage 2, box motion,
+            route planner, motion head, autoencoder), one process each
 
 Everything goes under OUTDIR: one folder per stage with its logs and results, and
 ``summary.json`` / ``summary.md`` saying which stages passed. The exit status is 0 only when
@@ -205,13 +207,18 @@ def _check_demo(ctx: Context, d: Path) -> tuple[bool, str]:
     return differences[worst] <= DEMO_TOLERANCE, detail
 
 
+def _burst_overrides(ctx: Context, d: Path) -> list[str]:
+    """What every training burst sets: no evaluation or checkpoints, steps until the timer stops it."""
+    return ["train.eval_every=0", "train.ckpt_every=0", "train.tensorboard=false", f"train.device={ctx.device}",
+            "train.steps=100000", f"train.out_dir={d / 'run'}", f"train.log_every={1 if ctx.quick else 5}"]
+
+
 def _train_overrides(ctx: Context, d: Path) -> list[str]:
-    common = ["train.eval_every=0", "train.ckpt_every=0", "train.tensorboard=false", f"train.device={ctx.device}",
-              "train.steps=100000", f"train.out_dir={d / 'run'}"]
+    common = _burst_overrides(ctx, d)
     if ctx.quick:
-        return common + ["train.log_every=1", "train.batch_size=1", "loss.num_occupied=2000",
-                         "loss.num_near_free=1000", "loss.num_far_free=500"]
-    return common + ["train.log_every=5", "train.profile_steps=3"]  # run/profile.json: where a step's time goes
+        return common + ["train.batch_size=1", "loss.num_occupied=2000", "loss.num_near_free=1000",
+                         "loss.num_far_free=500"]
+    return common + ["train.profile_steps=3"]  # run/profile.json: where a step's time goes
 
 
 def _torchrun(ctx: Context, d: Path, nproc: int, seconds: float, command: list[str], name: str = "torchrun",
@@ -256,6 +263,38 @@ def _train_wm_steps(ctx: Context, d: Path) -> list[Step]:
     # quick: past the eager warm-up steps and the capture (t3fast.training.graphed_step.WARMUP + 1)
     return [*steps, _torchrun(ctx, d, 1, 1 if ctx.quick else 30, graphed, min_steps=6 if ctx.quick else None),
             _torchrun(ctx, d / "eager", 1, 1 if ctx.quick else 15, eager, name="eager")]
+
+
+#: the runs behind the shipped world model (``t3fast train --recipe wm-small``), by what they
+#: train, most telling first: each preset's command, on the fewest scenes that fill its batch
+SHIPPED = {
+    "wm": ["train-wm", "--config", "small", "--ae", "wm-small", "data.train_scenes=1"],
+    "box": ["train-box-motion", "--config", "small", "data.train_scenes=4", "data.select_scenes=1"],
+    "plan": ["train-planner", "--config", "small", "data.train_scenes=3"],
+    "motion": ["train-motion", "--config", "small", "data.train_scenes=3"],
+    "ae": ["train-ae", "--config", "small", "data.train_scenes=1"],
+}
+
+
+def _train_shipped_steps(ctx: Context, d: Path) -> list[Step]:
+    """A short burst of each preset behind the shipped model, at its own batch and precision,
+    its cached windows built first (outside the timed steps; quick: 12 frames, batch 1)."""
+    steps = []
+    for name, command in SHIPPED.items():
+        data = [f"data.cache_dir={d / 'cache'}"] if name != "ae" else []
+        data += ["data.frames_per_scene=12", "train.batch_size=1"] if ctx.quick else []
+        argv = [*command, *_burst_overrides(ctx, d / name), *data]
+        steps.append(_torchrun(ctx, d / name, 1, 1 if ctx.quick else 6, argv, name=name))
+    return steps
+
+
+def _check_shipped(ctx: Context, d: Path) -> tuple[bool, str]:
+    rates = {}
+    for name in SHIPPED:
+        path = d / name / "result.json"
+        rates[name] = json.loads(path.read_text()).get("samples_per_s") if path.is_file() else None
+    detail = ", ".join(f"{name} {rate:.1f}" if rate else f"{name} -" for name, rate in rates.items())
+    return all(rates.values()), f"samples/s: {detail}"
 
 
 def _check_train(ctx: Context, d: Path) -> tuple[bool, str]:
@@ -303,6 +342,7 @@ STAGES = [
     Stage("demo", "t3fast demo", 240, 90, _demo_steps, _check_demo),
     Stage("train_ae", "train-ae burst", 80, 45, _train_ae_steps, _check_train),
     Stage("train_wm", "train-wm burst", 130, 70, _train_wm_steps, _check_train),
+    Stage("train_shipped", "shipped presets' training", 100, 40, _train_shipped_steps, _check_shipped),
 ]
 
 
@@ -448,7 +488,7 @@ def _write_summary(out: Path, summary: dict) -> None:
 def drop_checkpoints(out: Path) -> None:
     """Delete what the training bursts wrote besides their logs (checkpoints, the triplane
     cache), so that the folder can be kept or committed as it is."""
-    for stage in ("train_ae", "train_wm"):
+    for stage in ("train_ae", "train_wm", "train_shipped"):
         for path in sorted((out / stage).glob("**/*.pt")):
             path.unlink()
         shutil.rmtree(out / stage / "cache", ignore_errors=True)

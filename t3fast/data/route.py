@@ -24,10 +24,8 @@ def route_command(future_actions: Tensor) -> Tensor:
     if future_actions.dim() < 2 or future_actions.shape[-1] != 2:
         raise ValueError(f"route_command: future_actions must be [..., steps, 2], got {list(future_actions.shape)}")
     lateral = future_actions[..., 1].sum(-1)
-    command = torch.full(lateral.shape, STRAIGHT, dtype=torch.int64, device=future_actions.device)
-    command[lateral <= -TURN_OFFSET] = RIGHT
-    command[lateral >= TURN_OFFSET] = LEFT
-    return command
+    straight = torch.full(lateral.shape, STRAIGHT, dtype=torch.int64, device=future_actions.device)
+    return torch.where(lateral >= TURN_OFFSET, LEFT, torch.where(lateral <= -TURN_OFFSET, RIGHT, straight))
 
 
 def mirror_command(command: Tensor) -> Tensor:

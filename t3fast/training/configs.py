@@ -214,10 +214,6 @@ class Stage2Config:
 
     def __post_init__(self) -> None:
         _weights("", self, ("decoder_lr_scale", "planner_lr_scale"), "0 freezes that part")
-        if self.train.cuda_graph and self.data.latent_cache and not self.data.cache_labels:
-            raise ConfigError("train.cuda_graph needs labelled windows (data.cache_labels=true, or "
-                              "data.latent_cache=false): a step on the cached latent windows mirrors them and "
-                              "drops route commands by random choices made on the host")
 
 
 @dataclass

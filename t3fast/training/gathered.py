@@ -41,15 +41,16 @@ class GatheredBatches(Dataset):
     ``device`` when they fit there (:func:`fits_on`) and in host memory otherwise; a batch is
     gathered where they are and made by :meth:`batch`.
 
-    Attributes: ``device``, where the fields are held and the batches made.
+    Attributes: ``target``, the device the batches are for (the training device); ``device``,
+    where the fields are held and the batches made (``target`` or the CPU).
     """
 
     def __init__(self, fields: dict[str, Tensor], device: torch.device | str = "cpu"):
         sizes = {name: t.shape[0] for name, t in fields.items()}
         if len(set(sizes.values())) != 1:
             raise ValueError(f"{type(self).__name__}: every field needs one row per item, got {sizes}")
-        device = torch.device(device)
-        self.device = device if fits_on(device, nbytes(fields)) else torch.device("cpu")
+        self.target = torch.device(device)
+        self.device = self.target if fits_on(self.target, nbytes(fields)) else torch.device("cpu")
         self.fields = {name: t.to(self.device) for name, t in fields.items()}
 
     def __len__(self) -> int:

@@ -16,6 +16,9 @@ How a graphed step differs from an eager one:
   variant runs :data:`WARMUP` eager steps before it is captured (lazy initialisation such as
   cuBLAS workspaces and the optimiser's state must not be captured); they run on the side
   stream the graph is captured on.
+* The graphs share one memory pool: nothing a replay leaves in it is read after the next
+  replay of any graph (the logged values are read before it, and each replay computes the
+  gradients it uses), so variants cost the memory of the largest, not of all together.
 * The step must not read the device on the host nor copy host data to it (both break a
   capture): the tasks that offer ``step_variant`` are held to this by tests on the CPU.
 * The optimiser is AdamW's fused kernel with its learning rates in device tensors (the
@@ -174,6 +177,7 @@ class GraphedStep:
         self.replays = self.eager_steps = 0
         self.failures: dict[str, str] = {}
         self._stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+        self._pool = torch.cuda.graph_pool_handle() if device.type == "cuda" else None
 
     @property
     def captured(self) -> int:
@@ -223,7 +227,7 @@ class GraphedStep:
         self._stream.wait_stream(torch.cuda.current_stream(self.device))
         try:
             # thread_local: the process group's watchdog thread may query events meanwhile
-            with torch.cuda.graph(graph, stream=self._stream, capture_error_mode="thread_local"):
+            with torch.cuda.graph(graph, pool=self._pool, stream=self._stream, capture_error_mode="thread_local"):
                 outputs = self.body(static)
         except RuntimeError as exc:
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

@@ -15,7 +15,6 @@ from torch import nn
 
 from t3fast.errors import ConfigError, DivergenceError
 from t3fast.io.checkpoint import load_checkpoint
-from t3fast.training.configs import SequencesConfig, Stage2Config, TrainConfig
 from t3fast.training.graphed_step import WARMUP, GraphedStep, layout, map_tensors, tensors_of
 from t3fast.training.trainer import Trainer
 from tests.training.test_trainer import ToyTask, toy_config
@@ -173,10 +172,3 @@ def test_graphed_profile_starts_after_the_capture(tmp_path: Path) -> None:
 def test_cuda_graph_needs_a_task_that_names_its_host_choices(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="ToyTask has no step_variant"):
         Trainer(ToyTask(), toy_config(tmp_path, cuda_graph=True))
-
-
-def test_stage2_refuses_cuda_graph_on_the_cached_latent_windows() -> None:
-    with pytest.raises(ConfigError, match="train.cuda_graph needs labelled windows"):
-        Stage2Config(data=SequencesConfig(latent_cache=True), train=TrainConfig(cuda_graph=True))
-    Stage2Config(data=SequencesConfig(latent_cache=True, cache_labels=True), train=TrainConfig(cuda_graph=True))
-    Stage2Config(data=SequencesConfig(latent_cache=False), train=replace(TrainConfig(), cuda_graph=True))

@@ -10,7 +10,9 @@ import torch
 
 from t3fast.agents.tracker import tracker_velocities
 from t3fast.data.classes import CAR, FREE, PEDESTRIAN
+from t3fast.data.route import route_command
 from t3fast.data.sample import PRESENT, WINDOW
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.models.triplane import Triplane
 from t3fast.training.world_model import latent_flips
 from t3fast.training.world_model.latent_cache import AlignedBatch
@@ -165,6 +167,16 @@ def test_invalid_boxes_stay_zero(flips):
     garbage = AlignedBatch(batch.planes, batch.boxes.masked_fill(~batch.box_valid[..., None], 3.0),
                            batch.box_valid, batch.past_actions, batch.future_actions, batch.velocity)
     assert (flip_aligned(garbage, *flips).boxes[~batch.box_valid] == 0).all()
+
+
+@pytest.mark.parametrize("flips", ALL_FLIPS)
+def test_a_flip_and_its_route_command_need_no_host_read_or_host_data(flips):
+    """As in a training step on a GPU: nothing waits for the device, nothing is copied to it."""
+    batch = _batch()
+    flip_aligned(batch, *flips)  # the device constants made once
+    with sync_free(), SyncCounter() as counter:
+        route_command(flip_aligned(batch, *flips).future_actions)
+    assert counter.total == 0 and not counter.host_data, (counter.by_caller, counter.host_data)
 
 
 def test_only_a_square_plane_can_be_transposed():

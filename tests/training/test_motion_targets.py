@@ -7,6 +7,7 @@ import math
 import torch
 
 from t3fast.data.sample import PRESENT, WINDOW
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.training.world_model.motion_targets import agent_motion, plane_cell_centres
 
 CELL = 0.8  # metres per xy-plane cell of a 100 x 100 plane
@@ -158,3 +159,12 @@ def test_min_flow_decides_what_moves():
     # steps 0 and 1 (0.4 and 0.8 cells) are under 1 cell: static; from step 2 (1.2 cells) moving
     assert not moving[0, :2].any() and static[0, :2].all()
     assert all(torch.equal(moving[0, k], PRESENT_CAR) for k in range(2, 6))
+
+
+def test_the_targets_are_made_without_a_host_read_or_host_data():
+    """As in a training step on a GPU: nothing waits for the device, nothing is copied to it."""
+    boxes, valid = _boxes(speed=1.6)
+    agent_motion(boxes, valid, margin=MARGIN)  # the device constants made once
+    with sync_free(), SyncCounter() as counter:
+        agent_motion(boxes, valid, margin=MARGIN)
+    assert counter.total == 0 and not counter.host_data, (counter.by_caller, counter.host_data)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
 from dataclasses import replace
 from types import SimpleNamespace
@@ -24,17 +26,20 @@ from t3fast.models.triplane import Triplane
 from t3fast.presets import preset
 from t3fast.pretrained import export_weights, load_world_model
 from t3fast.training.configs import WorldLossConfig
-from t3fast.training.gathered import fits_on
+from t3fast.training.gathered import fits_on, nbytes
 from t3fast.training.graphed_step import WARMUP
 from t3fast.training.trainer import Trainer
 from t3fast.training.world_model.forwards import RolloutModel
 from t3fast.training.world_model.latent_cache import (
+    AlignedBatches,
+    AlignedLatentCache,
     LabelledAlignedWindows,
     ResidentAlignedWindows,
     resident_bytes,
 )
 from t3fast.training.world_model.loss import rollout_loss
-from t3fast.training.world_model.task import WorldModelTask
+from t3fast.training.world_model.motion_loss import motion_loss
+from t3fast.training.world_model.task import StepChoices, WorldModelTask
 from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window, rollout_frames
 from t3fast.viz.viewer import read_viewer_data
 
@@ -426,6 +431,7 @@ def test_step_variant_draws_the_rollout_start_the_next_step_uses(monkeypatch):
     (``step_variant``) and the step must use that start, not draw another."""
     cfg = preset("wm-small-delta")
     cfg.loss = replace(cfg.loss, rollout_steps=1)
+    cfg.data = replace(cfg.data, latent_cache=False)  # the labels path
     task = WorldModelTask.__new__(WorldModelTask)  # the step only: no stage-1 checkpoint to read
     task.cfg = cfg
     used = []
@@ -439,7 +445,9 @@ def test_step_variant_draws_the_rollout_start_the_next_step_uses(monkeypatch):
     for _ in range(12):
         drawn.append(task.step_variant())
         task.training_step(model, batch)
-    assert used == drawn and len(set(drawn)) > 1 and set(drawn) <= set(range(6))
+    starts = [d.start for d in drawn]
+    assert used == starts and len(set(starts)) > 1 and set(starts) <= set(range(6))
+    assert all(d.plan_mirror is None and d.flips is None for d in drawn)  # the labels path has neither
     task.training_step(model, batch)  # without a variant drawn, the step draws its own
     assert len(used) == 13
 
@@ -463,10 +471,90 @@ def test_a_graphed_stage2_run_replays_a_step_that_reads_nothing_on_the_host(worl
     assert trainer.graphed.report() == {"graphs": 1, "replays": 2, "eager_steps": WARMUP, "failures": {}}
     batch = next(iter(trainer.loader)).to(device)
     trainer.task.cfg.loss = replace(cfg.loss, rollout_steps=2)  # a later start: history pushed forward
-    while trainer.task.step_variant() == 0:
+    while trainer.task.step_variant().start == 0:
         pass
     with sync_free(), SyncCounter() as counter:
         terms = trainer.graphed.body(batch)
     assert counter.total == 0, counter.by_caller
     assert not counter.host_data, counter.host_data
     assert all(torch.isfinite(v) for v in terms.values()) and set(terms) >= {"loss", "occupancy", "grad_norm"}
+
+
+def _flow_task(world_ckpt, cache_dir, **train) -> WorldModelTask:
+    """The shipped preset's stage 2, tiny: the flow forecaster and the route planner on the cached
+    latent windows of one scene, mirrored and flipped at random."""
+    cfg = preset("wm-small")
+    cfg.autoencoder_ckpt = str(world_ckpt.parent.parent / "ae" / "last.pt")
+    cfg.model = replace(cfg.model, flow_widths=(8, 8, 8))
+    cfg.data = replace(cfg.data, train_scenes=1, frames_per_scene=14, stride=1, cache_dir=str(cache_dir))
+    cfg.train = replace(cfg.train, batch_size=2, eval_every=0, ckpt_every=0, log_every=1, tensorboard=False,
+                        **train)
+    return WorldModelTask(cfg)
+
+
+@pytest.fixture(scope="module")
+def flow_cache(tmp_path_factory):
+    """The cache folder the tiny shipped-preset tasks share (their windows encoded once)."""
+    return tmp_path_factory.mktemp("flow-cache")
+
+
+def test_the_latent_windows_held_whole_give_the_loaders_batches_and_as_on_a_gpu_the_same_loss(world_ckpt, flow_cache):
+    """Held whole (on a GPU where they fit), the cached latent windows give the batches the loader
+    collates from their files; as on a GPU (no host read) every window's boxes are padded to the
+    split's most agents, so all batches have one shape, and the padding changes no loss term."""
+    task = _flow_task(world_ckpt, flow_cache)
+    model = task.build_model()
+    cache = task.train_dataset()
+    assert isinstance(cache, AlignedLatentCache)  # the CPU reads them from disk
+    held = AlignedBatches(cache, progress=False)
+    assert len(held) == len(cache) == 4 and cache.stored_bytes() >= nbytes(held.fields) * 0.9
+    agents = [cache[i].boxes.shape[1] for i in range(len(cache))]
+    order = [agents.index(min(agents)), 2]
+    got, want = task.collate(held.__getitems__(order)), task.collate([cache[i] for i in order])
+    for a, b in zip(dataclasses.astuple(got), dataclasses.astuple(want)):
+        for x, y in zip(a if isinstance(a, Triplane) else [a], b if isinstance(b, Triplane) else [b]):
+            assert (x is None and y is None) or torch.equal(x, y)
+    with sync_free():
+        padded = held.take(torch.tensor([order[0]]))
+    assert padded.boxes.shape[2] == max(agents) > min(agents)
+    trimmed = held.take(torch.tensor([order[0]]))
+    with torch.no_grad():
+        for a, b in zip(motion_loss(model, padded, task.cfg.loss)[1].values(),
+                        motion_loss(model, trimmed, task.cfg.loss)[1].values()):
+            torch.testing.assert_close(a, b)
+
+
+def test_the_shipped_presets_stage2_step_replays_and_reads_nothing_on_the_host(world_ckpt, flow_cache, tmp_path,
+                                                                               device):
+    """``train.cuda_graph`` on the cached latent windows, held whole as on a GPU: the trainer
+    draws each step's mirror and flips first (``step_variant``), replays one graph per variant,
+    and the step it captures reads nothing on the host and makes no tensor from host data."""
+    task = _flow_task(world_ckpt, flow_cache, steps=4, device=device, out_dir=str(tmp_path / "run"), cuda_graph=True)
+    variants = [StepChoices(True, (True, False, True), None), StepChoices(False, (False, True, False), None)]
+    calls = itertools.count()
+
+    def two_variants() -> StepChoices:
+        task._drawn = variants[next(calls) % 2]
+        return task._drawn
+
+    original = task.train_dataset
+
+    def held() -> AlignedBatches:  # as on a GPU where they fit: one batch shape
+        data = original()
+        return data if isinstance(data, AlignedBatches) else AlignedBatches(data, device, progress=False)
+
+    drawn, task.train_dataset = task.step_variant, held
+    trainer = Trainer(task, task.cfg.train)
+    assert drawn().plan_mirror is not None and len(task._drawn.flips) == 3 and task._drawn.start is None
+    task.step_variant = two_variants
+    trainer.graphed.warmup = 1
+    with sync_free():
+        trainer.fit()
+    assert trainer.graphed.report() == {"graphs": 2, "replays": 2, "eager_steps": 2, "failures": {}}
+    batch = next(iter(trainer.loader)).to(device)
+    task.step_variant()
+    with sync_free(), SyncCounter() as counter:
+        terms = trainer.graphed.body(batch)
+    assert counter.total == 0, counter.by_caller
+    assert not counter.host_data, counter.host_data
+    assert all(torch.isfinite(v) for v in terms.values()) and {"loss", "plan_l2"} <= set(terms)

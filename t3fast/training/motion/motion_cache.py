@@ -150,14 +150,14 @@ class MotionCache(SceneFiles):
 
 class MotionBatches(GatheredBatches):
     """A :class:`MotionCache`'s windows as the motion head reads them (:class:`MotionWindows`,
-    planes back to float32). Where the host may read (:func:`~t3fast.host_syncs.reads_host`)
-    a batch keeps only the agents its cells name; elsewhere every padded agent (never visible),
-    so the batch's shapes do not depend on its data."""
+    planes back to float32). Where the host may read (:func:`~t3fast.host_syncs.reads_host`:
+    training on the CPU) a batch keeps only the agents its cells name; elsewhere every padded
+    agent (never visible), so the batch's shapes do not depend on its data."""
 
     def batch(self, rows: dict[str, Tensor]) -> MotionWindows:
         xy, cells = rows["xy"].float(), rows["cells"].long()
         visible, motion = rows["visible"], rows["motion"]
-        if reads_host(self.device):
+        if reads_host(self.target):
             agents = max(int(cells.max()) + 1, 1)
             visible, motion = visible[:, :, :agents], motion[:, :, :agents]
         return MotionWindows(xy[:, 1], xy[:, 0], rows["velocity"], AgentTargets(cells, visible, motion))

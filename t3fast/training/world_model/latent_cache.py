@@ -32,6 +32,7 @@ from t3fast.data.classes import FREE, IGNORE
 from t3fast.data.sample import NUM_FUTURE, NUM_PAST, PRESENT, WINDOW, DrivingSample
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import DataFormatError
+from t3fast.host_syncs import reads_host
 from t3fast.models.triplane import Triplane
 from t3fast.models.world_model import T3Former
 from t3fast.training.cache_files import (
@@ -44,6 +45,7 @@ from t3fast.training.cache_files import (
     world_digest,
     write_entry,
 )
+from t3fast.training.gathered import GatheredBatches
 from t3fast.training.triplane_cache import encoder_digest, plane_fields, planes_from, planes_payload
 from t3fast.training.world_model.windows import SequenceBatch, ego_aligned_window
 
@@ -138,17 +140,57 @@ class AlignedLatentCache(Dataset):
     def __len__(self) -> int:
         return len(self.windows)
 
-    def __getitem__(self, index: int) -> AlignedWindow:
+    def entry(self, index: int) -> Payload:
+        """Window ``index`` as stored (planes in float16)."""
         path = self.path(index)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: window {index} is not cached yet (build() first)")
         try:
-            state = read_entry(path, self.identity(index), self._layout)
+            return read_entry(path, self.identity(index), self._layout)
         except BrokenEntry as exc:  # broken since build() checked it: the next build() encodes it again
             raise DataFormatError(f"{path}: {exc}; run again to encode it anew") from exc
+
+    def __getitem__(self, index: int) -> AlignedWindow:
+        state = self.entry(index)
         planes = planes_from(state).map(lambda p: p.float())
         return AlignedWindow(planes, state["boxes"], state["box_valid"], state["past_actions"], state["future_actions"],
                              state["velocity"])
+
+    def stored_bytes(self) -> int:
+        """About what holding every window as stored takes: the size of its files."""
+        return sum(self.path(i).stat().st_size for i in range(len(self)))
+
+
+class AlignedBatches(GatheredBatches):
+    """An :class:`AlignedLatentCache`'s windows held whole, each batch an :class:`AlignedBatch`
+    gathered where they are (on a GPU where they fit), nothing read from disk in the step. Each
+    window's boxes are padded with invalid ones to the split's most agents, so a batch's shapes
+    do not depend on its windows (one CUDA graph serves them all); where the host may read
+    (:func:`~t3fast.host_syncs.reads_host`: on the CPU) a batch keeps the most agents of its
+    windows, as :func:`collate_aligned` pads them.
+
+    Args:
+        cache: a built cache.
+        device: the training device (the windows are held there where they fit).
+    """
+
+    def __init__(self, cache: AlignedLatentCache, device: torch.device | str = "cpu", progress: bool = True):
+        entries = [cache.entry(i) for i in tqdm(range(len(cache)), desc="hold aligned windows", unit="window",
+                                                 disable=not progress)]
+        agents = max(e["boxes"].shape[1] for e in entries)
+        padded = ("boxes", "box_valid")
+        fields = {name: torch.stack([e[name] for e in entries]) for name in entries[0] if name not in padded}
+        fields.update({name: torch.stack([_pad_agents(e[name], agents) for e in entries]) for name in padded})
+        fields["agents"] = torch.tensor([e["boxes"].shape[1] for e in entries])
+        super().__init__(fields, device)
+
+    def batch(self, rows: dict[str, Tensor]) -> AlignedBatch:
+        boxes, valid = rows["boxes"], rows["box_valid"]
+        if reads_host(self.target):
+            agents = int(rows["agents"].max())
+            boxes, valid = boxes[:, :, :agents], valid[:, :, :agents]
+        planes = Triplane(*(rows[name].float() if name in rows else None for name in Triplane._fields))
+        return AlignedBatch(planes, boxes, valid, rows["past_actions"], rows["future_actions"], rows["velocity"])
 
 
 class LabelledAlignedWindows(Dataset):
@@ -235,19 +277,21 @@ class AlignedBatch:
                             self.past_actions.to(device), self.future_actions.to(device), self.velocity.to(device))
 
 
+def _pad_agents(x: Tensor, agents: int) -> Tensor:
+    """A window's boxes ``[11, A, 7]`` or their validity ``[11, A]`` padded to ``agents`` with
+    invalid (zero) boxes."""
+    return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, agents - x.shape[1]))
+
+
 def collate_aligned(items: list[AlignedWindow]) -> AlignedBatch:
     """Stack cached windows; windows with fewer agents get invalid padding boxes."""
     agents = max(item.boxes.shape[1] for item in items)
-
-    def pad(x: Tensor) -> Tensor:
-        return torch.nn.functional.pad(x, (0, 0) * (x.dim() - 2) + (0, agents - x.shape[1]))
-
     first = items[0].planes
     planes = Triplane(*(None if first[i] is None else torch.stack([it.planes[i] for it in items]) for i in range(3)))
     return AlignedBatch(
         planes,
-        torch.stack([pad(it.boxes) for it in items]),
-        torch.stack([pad(it.box_valid) for it in items]),
+        torch.stack([_pad_agents(it.boxes, agents) for it in items]),
+        torch.stack([_pad_agents(it.box_valid, agents) for it in items]),
         torch.stack([it.past_actions for it in items]),
         torch.stack([it.future_actions for it in items]),
         torch.stack([it.velocity for it in items]),

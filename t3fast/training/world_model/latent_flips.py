@@ -52,10 +52,10 @@ def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: boo
             raise ValueError(f"flip_aligned: x and y can only be swapped on a square plane, got {list(xy.shape[-2:])}")
         xy, xz, yz = xy.transpose(-2, -1), yz, xz
         velocity = velocity.transpose(-2, -1).unflatten(1, (-1, 2)).flip(2).flatten(1, 2)  # (x, y) pairs swap
-        boxes[..., [0, 1]], yaw = boxes[..., [1, 0]], math.pi / 2 - yaw
-        past, future = past[..., [1, 0]], future[..., [1, 0]]
+        boxes[..., :2], yaw = boxes[..., :2].flip(-1), math.pi / 2 - yaw
+        past, future = past.flip(-1), future.flip(-1)
     boxes[..., 6] = wrap_angle(yaw)
-    boxes[~batch.box_valid] = 0.0
+    boxes = boxes.masked_fill(~batch.box_valid[..., None], 0.0)
     return AlignedBatch(Triplane(xy.contiguous(), xz, yz), boxes, batch.box_valid, past, future,
                         velocity.contiguous())
 

@@ -19,6 +19,7 @@ from torch import Tensor
 from t3fast.agents.box_kinematics import rotate
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
 from t3fast.data.sample import PRESENT
+from t3fast.device_constants import device_constant
 
 
 def plane_cell_centres(shape: tuple[int, int], device: torch.device) -> Tensor:
@@ -77,8 +78,8 @@ def agent_motion(
     """
     b, t, a, _ = boxes.shape
     h, w = shape
-    cell = torch.tensor([(GRID_UPPER[0] - GRID_LOWER[0]) / h, (GRID_UPPER[1] - GRID_LOWER[1]) / w],
-                        device=boxes.device)
+    cell = device_constant(((GRID_UPPER[0] - GRID_LOWER[0]) / h, (GRID_UPPER[1] - GRID_LOWER[1]) / w),
+                           torch.float32, boxes.device)
     points = plane_cell_centres(shape, boxes.device).view(1, 1, h * w, 2)  # [1, 1, HW, 2]
     now = boxes[:, PRESENT]  # [B, A, 7]
     in_now, local = _inside(points, now, margin)

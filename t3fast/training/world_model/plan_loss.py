@@ -17,6 +17,7 @@ from torch import Tensor
 
 from t3fast.data.route import route_command
 from t3fast.data.sample import PRESENT
+from t3fast.host_syncs import reads_host
 from t3fast.training.world_model.latent_cache import AlignedBatch
 from t3fast.training.world_model.latent_flips import flip_aligned
 
@@ -31,9 +32,13 @@ class PlanBatch:
     future_actions: Tensor
 
 
-def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Generator | None = None) -> PlanBatch:
-    """The route planner's training inputs from cached windows (see the module doc)."""
-    if bool(torch.rand((), generator=generator) < 0.5):
+def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Generator | None = None,
+               mirror: bool | None = None) -> PlanBatch:
+    """The route planner's training inputs from cached windows (see the module doc), mirrored
+    where ``mirror`` (None: a coin toss)."""
+    if mirror is None:
+        mirror = bool(torch.rand((), generator=generator) < 0.5)
+    if mirror:
         batch = flip_aligned(batch, False, True, False)
     xy = batch.planes.xy
     command = drop_commands(route_command(batch.future_actions), command_dropout, generator)
@@ -41,9 +46,13 @@ def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Gen
 
 
 def drop_commands(command: Tensor, share: float, generator: torch.Generator | None = None) -> Tensor:
-    """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``."""
-    # drawn on the host (a CPU generator's stream), copied without waiting for the device
-    dropped = (torch.rand(command.shape, generator=generator) < share).to(command.device, non_blocking=True)
+    """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``: drawn
+    from ``generator`` where the host may read (:func:`~t3fast.host_syncs.reads_host`), else on
+    the commands' device from its own generator (a CUDA graph can hold that draw, not a copy)."""
+    if reads_host(command.device):
+        dropped = torch.rand(command.shape, generator=generator) < share
+    else:
+        dropped = torch.rand(command.shape, device=command.device) < share
     return torch.where(dropped, torch.full_like(command, -1), command)
 
 

@@ -4,6 +4,7 @@ checkpoint, feeds it windows, scores its rollouts on validation windows."""
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -26,6 +27,7 @@ from t3fast.training.world_model.delta_loss import delta_rollout_loss
 from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
 from t3fast.training.world_model.latent_cache import (
     AlignedBatch,
+    AlignedBatches,
     AlignedLatentCache,
     AlignedWindow,
     LabelledAlignedWindows,
@@ -33,7 +35,7 @@ from t3fast.training.world_model.latent_cache import (
     collate_aligned,
     resident_bytes,
 )
-from t3fast.training.world_model.latent_flips import random_flips
+from t3fast.training.world_model.latent_flips import flip_aligned, random_flips
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
 from t3fast.training.world_model.plan_loss import plan_batch
@@ -62,10 +64,21 @@ def build_world_model(cfg: Stage2Config) -> RolloutModel | FlowMotionModel:
     return training.from_config(cfg.autoencoder, cfg.model)
 
 
+@dataclass(frozen=True)
+class StepChoices:
+    """The host-side random choices of a stage-2 step, each None where its path has none: the
+    route planner's left-right mirror and the latent windows' flips (x, y, transpose) on the
+    cached latent windows, and where the rollout starts."""
+
+    plan_mirror: bool | None
+    flips: tuple[bool, bool, bool] | None
+    start: int | None
+
+
 class WorldModelTask:
     """Trains :class:`T3Former` (stage 2); scores the Avg mIoU of full rollouts on val windows."""
 
-    _next_start: int | None = None  # drawn by step_variant for the next step
+    _drawn: StepChoices | None = None  # drawn by step_variant for the next step
 
     def __init__(self, cfg: Stage2Config):
         self.cfg = copy.deepcopy(cfg)
@@ -111,8 +124,10 @@ class WorldModelTask:
                 if is_main():
                     cache.build()
                 barrier()
-                if not data.cache_labels:
-                    return cache
+                if not data.cache_labels:  # held on the GPU where they fit, else read from disk by the loader
+                    device = next(self._model.parameters()).device
+                    fits = fits_on(device, cache.stored_bytes())
+                    return AlignedBatches(cache, device, progress=is_main()) if fits else cache
                 labelled = LabelledAlignedWindows(cache)
                 device = next(self._model.parameters()).device  # held there if they fit
                 fits = fits_on(device, resident_bytes(labelled))
@@ -127,8 +142,8 @@ class WorldModelTask:
             return Occ3DNuScenes(data.occ3d_root, data.occ3d_train_info, stride=data.stride)
         raise ValueError(f"data.source must be 'synthetic' or 'occ3d', got {data.source!r}")
 
-    def collate(self, batch_list: list | SequenceBatch) -> SequenceBatch | AlignedBatch:
-        if isinstance(batch_list, SequenceBatch):  # gathered on the device, already collated
+    def collate(self, batch_list: list | SequenceBatch | AlignedBatch) -> SequenceBatch | AlignedBatch:
+        if isinstance(batch_list, (SequenceBatch, AlignedBatch)):  # gathered whole, already collated
             return batch_list
         if isinstance(batch_list[0], AlignedWindow):
             return collate_aligned(batch_list)
@@ -139,16 +154,22 @@ class WorldModelTask:
 
     def training_step(self, model: nn.Module, batch: SequenceBatch | AlignedBatch) -> tuple[Tensor, dict[str, Tensor]]:
         core = model.module if hasattr(model, "module") else model
+        drawn, self._drawn = self._drawn, None  # without a variant drawn, the step draws its own choices
         if isinstance(batch, AlignedBatch):
             # a route planner that trains learns on the same windows, mirrored left-right only
-            plan = plan_batch(batch, self.cfg.loss.command_dropout) if (
-                core.reads_command and self.cfg.planner_lr_scale > 0) else None
-            flipped = random_flips(batch) if self.cfg.data.latent_flips else batch
+            mirror = None if drawn is None else drawn.plan_mirror
+            dropout = self.cfg.loss.command_dropout
+            plan = plan_batch(batch, dropout, mirror=mirror) if self._trains_planner(core) else None
+            if not self.cfg.data.latent_flips:
+                flipped = batch
+            else:
+                flipped = random_flips(batch) if drawn is None else flip_aligned(batch, *drawn.flips)
             if self.cfg.model.forecaster != "flow":
-                return delta_rollout_loss(model, flipped, self.cfg.loss, self._take_start())
+                start = self._rollout_start() if drawn is None else drawn.start
+                return delta_rollout_loss(model, flipped, self.cfg.loss, start)
             return motion_loss(model, flipped, self.cfg.loss, plan=plan)
         steps = self.cfg.loss.rollout_steps
-        first = self._take_start()
+        first = self._rollout_start() if drawn is None else drawn.start
         occ = batch.occ
         if core.ego_aligned and batch.planes is not None:  # encoded once (the encoder is frozen): read
             planes, occ = batch.planes, moved_window(batch.occ, batch.ego_poses)
@@ -159,16 +180,20 @@ class WorldModelTask:
             planes = batch.planes if batch.planes is not None else core.encode_sequence(batch.occ)
         return rollout_loss(model, planes, occ, batch.past_actions, batch.future_actions, first, steps, self.cfg.loss)
 
-    def step_variant(self) -> int:
-        """Draws the next step's rollout start, which that step uses (``train.cuda_graph``
-        replays one graph per start; see :class:`~t3fast.training.task.Task`)."""
-        self._next_start = self._rollout_start()
-        return self._next_start
+    def step_variant(self) -> StepChoices:
+        """Draws the next step's host-side choices, which that step uses (``train.cuda_graph``
+        replays one graph per variant; see :class:`~t3fast.training.task.Task`): on the cached
+        latent windows the planner's mirror and the flips, then the rollout start."""
+        aligned = self.cfg.model.ego_aligned and self.cfg.data.latent_cache and not self.cfg.data.cache_labels
+        mirror = bool(torch.rand(()) < 0.5) if aligned and self._trains_planner(self._model) else None
+        flips = tuple(bool(v) for v in torch.randint(0, 2, (3,))) if aligned and self.cfg.data.latent_flips else None
+        start = self._rollout_start() if self.cfg.model.forecaster != "flow" else None
+        self._drawn = StepChoices(mirror, flips, start)
+        return self._drawn
 
-    def _take_start(self) -> int:
-        """This step's rollout start: the one :meth:`step_variant` drew for it, else a new one."""
-        first, self._next_start = self._next_start, None
-        return self._rollout_start() if first is None else first
+    def _trains_planner(self, model: nn.Module | None) -> bool:
+        """Whether a step of ``model`` on the cached latent windows also trains its route planner."""
+        return model is not None and model.reads_command and self.cfg.planner_lr_scale > 0
 
     def _rollout_start(self) -> int:
         """A random future step for a rollout of ``loss.rollout_steps`` steps to start at."""

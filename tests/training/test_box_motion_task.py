@@ -15,7 +15,7 @@ from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
 from t3fast.forecast.agents import fitted_boxes
-from t3fast.host_syncs import SyncCounter
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
 from t3fast.models.ego_motion import planar_poses
@@ -120,6 +120,10 @@ def test_the_network_learns_the_agents_it_sees(records, world_ckpt):
         task.training_step(model, batch)
     assert counter.total == 0, counter.by_caller
     assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
+    assert task.step_variant() is None  # train.cuda_graph: no host choice, the agents to mirror drawn on the device
+    with sync_free(), SyncCounter() as graphed:
+        task.training_step(model, batch)
+    assert graphed.total == 0 and not graphed.host_data, (graphed.by_caller, graphed.host_data)
     for _ in range(150):
         loss, values = task.training_step(model, batch)
         opt.zero_grad()

@@ -150,8 +150,12 @@ def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
         task.training_step(model, batch)
         mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
-    assert dict(counter.by_caller) == {"training/motion/task.py:training_step": 1}
+    assert dict(counter.by_caller) == {"training/coin_toss.py:_toss": 1}
     assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
+    task.step_variant()  # train.cuda_graph: the toss drawn first, the step as a graph holds it
+    with sync_free(), SyncCounter() as graphed:
+        task.training_step(model, batch)
+    assert graphed.total == 0 and not graphed.host_data, (graphed.by_caller, graphed.host_data)
     for _ in range(200):
         loss, _ = task.training_step(model, batch)
         opt.zero_grad()

@@ -13,7 +13,7 @@ from t3fast.data.route import LEFT, RIGHT, STRAIGHT
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.errors import ConfigError
-from t3fast.host_syncs import SyncCounter
+from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.ego_motion import planar_poses
 from t3fast.models.planner import constant_turn_rate
@@ -176,8 +176,12 @@ def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_o
         loss, values = task.training_step(model, batch)
         mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
-    assert dict(counter.by_caller) == {"training/planner/task.py:training_step": 1}
+    assert dict(counter.by_caller) == {"training/coin_toss.py:_toss": 1}
     assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
+    task.step_variant()  # train.cuda_graph: the toss drawn first, the step as a graph holds it
+    with sync_free(), SyncCounter() as graphed:
+        task.training_step(model, batch)[0].backward()
+    assert graphed.total == 0 and not graphed.host_data, (graphed.by_caller, graphed.host_data)
     assert {"closest_l2", "mode_choice"} <= set(values) and torch.isfinite(loss)
     loss.backward()
     assert planner.head[-1].weight.grad.abs().sum() > 0

@@ -24,6 +24,7 @@ from t3fast.data.synthetic.dataset import SPLIT_SIZE
 from t3fast.device_constants import device_constant
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
+from t3fast.host_syncs import reads_host
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet
 from t3fast.models.world_model import T3Former
@@ -122,10 +123,17 @@ class BoxMotionTask:
     def samples_in(self, batch: dict[str, Tensor]) -> int:
         return batch["views"].shape[0]
 
+    def step_variant(self) -> None:
+        """No host-side choice (``train.cuda_graph``): where the host may not read, the agents to
+        mirror are drawn on the device."""
+        return None
+
     def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
-        # drawn on the host (a CPU generator's stream), copied without waiting for the device
-        flip = torch.rand(self.samples_in(batch), generator=self._generator) < 0.5
-        flip = flip.to(batch["views"].device, non_blocking=True)
+        device = batch["views"].device
+        if reads_host(device):  # the task's own generator, as every CPU run has drawn them
+            flip = torch.rand(self.samples_in(batch), generator=self._generator) < 0.5
+        else:  # a CUDA graph can hold a draw on the device, not a copy from the host
+            flip = torch.rand(self.samples_in(batch), device=device) < 0.5
         batch = mirror_agents(batch, flip)
         correction = model(batch["views"].float(), batch["features"])
         loss = class_balanced_mean(agent_errors(correction, batch), batch)

@@ -32,6 +32,7 @@ from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.flow_forecaster import tracker_motion
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
+from t3fast.training.coin_toss import CoinToss
 from t3fast.training.configs import MotionConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.motion.motion_cache import MotionBatches, MotionCache, MotionWindows
@@ -83,6 +84,7 @@ class MotionTask:
         self._model: T3Former | None = None
         self._val: MotionWindows | None = None
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
+        self._mirror = CoinToss(self._generator)  # each step's batch mirrored left-right or not
 
     def build_model(self) -> nn.Module:
         """The world model with a new motion head (zero correction: the tracker); every other
@@ -115,8 +117,12 @@ class MotionTask:
     def samples_in(self, batch: MotionWindows) -> int:
         return len(batch)
 
+    def step_variant(self) -> bool:
+        """Draws whether the next step mirrors its batch (``train.cuda_graph``: one graph each way)."""
+        return self._mirror.draw()
+
     def training_step(self, model: nn.Module, batch: MotionWindows) -> tuple[Tensor, dict[str, Tensor]]:
-        if bool(torch.rand((), generator=self._generator) < 0.5):
+        if self._mirror.take():
             batch = mirror_left_right(batch)
         displacements = model(batch.velocity, batch.present, batch.previous)
         loss, parts = motion_head_loss(displacements, batch.targets, self.cfg)

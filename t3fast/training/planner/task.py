@@ -30,6 +30,7 @@ from t3fast.models.planner import constant_turn_rate
 from t3fast.models.route_planner import RoutePlanner
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
+from t3fast.training.coin_toss import CoinToss
 from t3fast.training.configs import PlannerConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.planner.plan_cache import PlanBatches, PlanCache, PlanWindows
@@ -76,6 +77,7 @@ class PlannerTask:
         self._model: T3Former | None = None
         self._val: PlanWindows | None = None
         self._generator = torch.Generator().manual_seed(self.cfg.train.seed)
+        self._mirror = CoinToss(self._generator)  # each step's batch mirrored left-right or not
 
     def build_model(self) -> nn.Module:
         """The world model with a new route planner (constant turn rate: its last layer is zero)
@@ -113,8 +115,12 @@ class PlannerTask:
     def samples_in(self, batch: PlanWindows) -> int:
         return batch.present.shape[0]
 
+    def step_variant(self) -> bool:
+        """Draws whether the next step mirrors its batch (``train.cuda_graph``: one graph each way)."""
+        return self._mirror.draw()
+
     def training_step(self, model: nn.Module, batch: PlanWindows) -> tuple[Tensor, dict[str, Tensor]]:
-        if bool(torch.rand((), generator=self._generator) < 0.5):
+        if self._mirror.take():
             batch = mirror_left_right(batch)
         command = drop_commands(batch.command, self.cfg.command_dropout, self._generator)
         plans, scores = model(batch.present, batch.previous, batch.past_actions, command)

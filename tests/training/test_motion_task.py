@@ -150,7 +150,7 @@ def test_the_head_learns_the_windows_it_sees(cached, world_ckpt):
         task.training_step(model, batch)
         mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
-    assert dict(counter.by_caller) == {"training/coin_toss.py:_toss": 1}
+    assert dict(counter.by_caller) == {"training/step_draws.py:toss": 1}
     assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
     task.step_variant()  # train.cuda_graph: the toss drawn first, the step as a graph holds it
     with sync_free(), SyncCounter() as graphed:

@@ -176,7 +176,7 @@ def test_a_planner_of_several_modes_plans_its_best_scored_mode_and_trains_each_o
         loss, values = task.training_step(model, batch)
         mirror_left_right(batch)  # whichever way the step's coin fell
     # the one value read is the mirror's coin toss, from a CPU generator: no wait on a GPU
-    assert dict(counter.by_caller) == {"training/coin_toss.py:_toss": 1}
+    assert dict(counter.by_caller) == {"training/step_draws.py:toss": 1}
     assert not counter.host_data, counter.host_data  # the mirror's signs are device constants
     task.step_variant()  # train.cuda_graph: the toss drawn first, the step as a graph holds it
     with sync_free(), SyncCounter() as graphed:

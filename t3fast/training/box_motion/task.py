@@ -24,7 +24,6 @@ from t3fast.data.synthetic.dataset import SPLIT_SIZE
 from t3fast.device_constants import device_constant
 from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
-from t3fast.host_syncs import reads_host
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet
 from t3fast.models.world_model import T3Former
@@ -33,6 +32,7 @@ from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
 from t3fast.training.configs import BoxDataConfig, BoxMotionConfig
 from t3fast.training.distributed import barrier, is_main
+from t3fast.training.step_draws import uniform
 
 VAL_CHUNK = 4096  # agents per forward pass in evaluation
 
@@ -129,11 +129,7 @@ class BoxMotionTask:
         return None
 
     def training_step(self, model: nn.Module, batch: dict[str, Tensor]) -> tuple[Tensor, dict[str, Tensor]]:
-        device = batch["views"].device
-        if reads_host(device):  # the task's own generator, as every CPU run has drawn them
-            flip = torch.rand(self.samples_in(batch), generator=self._generator) < 0.5
-        else:  # a CUDA graph can hold a draw on the device, not a copy from the host
-            flip = torch.rand(self.samples_in(batch), device=device) < 0.5
+        flip = uniform((self.samples_in(batch),), batch["views"].device, self._generator) < 0.5
         batch = mirror_agents(batch, flip)
         correction = model(batch["views"].float(), batch["features"])
         loss = class_balanced_mean(agent_errors(correction, batch), batch)

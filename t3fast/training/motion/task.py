@@ -32,10 +32,10 @@ from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.flow_forecaster import tracker_motion
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
-from t3fast.training.coin_toss import CoinToss
 from t3fast.training.configs import MotionConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.motion.motion_cache import MotionBatches, MotionCache, MotionWindows
+from t3fast.training.step_draws import CoinToss
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, flow_terms, masked_mean
 
 VAL_CHUNK = 50  # validation windows per forward pass

@@ -30,10 +30,10 @@ from t3fast.models.planner import constant_turn_rate
 from t3fast.models.route_planner import RoutePlanner
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
-from t3fast.training.coin_toss import CoinToss
 from t3fast.training.configs import PlannerConfig
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.planner.plan_cache import PlanBatches, PlanCache, PlanWindows
+from t3fast.training.step_draws import CoinToss
 from t3fast.training.world_model.plan_loss import drop_commands, plan_error
 
 

@@ -62,5 +62,10 @@ def flip_aligned(batch: AlignedBatch, flip_x: bool, flip_y: bool, transpose: boo
 
 def random_flips(batch: AlignedBatch, generator: torch.Generator | None = None) -> AlignedBatch:
     """``batch`` under one of the eight mirrorings/transpositions, drawn uniformly."""
+    return flip_aligned(batch, *draw_flips(generator))
+
+
+def draw_flips(generator: torch.Generator | None = None) -> tuple[bool, bool, bool]:
+    """One of the eight (flip x, flip y, transpose) of :func:`flip_aligned`, drawn uniformly."""
     flip_x, flip_y, transpose = (bool(v) for v in torch.randint(0, 2, (3,), generator=generator))
-    return flip_aligned(batch, flip_x, flip_y, transpose)
+    return flip_x, flip_y, transpose

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from t3fast.data.route import route_command
 from t3fast.data.sample import PRESENT
-from t3fast.host_syncs import reads_host
+from t3fast.training.step_draws import toss, uniform
 from t3fast.training.world_model.latent_cache import AlignedBatch
 from t3fast.training.world_model.latent_flips import flip_aligned
 
@@ -36,9 +36,7 @@ def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Gen
                mirror: bool | None = None) -> PlanBatch:
     """The route planner's training inputs from cached windows (see the module doc), mirrored
     where ``mirror`` (None: a coin toss)."""
-    if mirror is None:
-        mirror = bool(torch.rand((), generator=generator) < 0.5)
-    if mirror:
+    if toss(generator) if mirror is None else mirror:
         batch = flip_aligned(batch, False, True, False)
     xy = batch.planes.xy
     command = drop_commands(route_command(batch.future_actions), command_dropout, generator)
@@ -46,13 +44,9 @@ def plan_batch(batch: AlignedBatch, command_dropout: float, generator: torch.Gen
 
 
 def drop_commands(command: Tensor, share: float, generator: torch.Generator | None = None) -> Tensor:
-    """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``: drawn
-    from ``generator`` where the host may read (:func:`~t3fast.host_syncs.reads_host`), else on
-    the commands' device from its own generator (a CUDA graph can hold that draw, not a copy)."""
-    if reads_host(command.device):
-        dropped = torch.rand(command.shape, generator=generator) < share
-    else:
-        dropped = torch.rand(command.shape, device=command.device) < share
+    """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``, drawn
+    as :func:`~t3fast.training.step_draws.uniform` draws them."""
+    dropped = uniform(command.shape, command.device, generator) < share
     return torch.where(dropped, torch.full_like(command, -1), command)
 
 

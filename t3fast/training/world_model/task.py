@@ -22,6 +22,7 @@ from t3fast.pretrained import resolve
 from t3fast.training.configs import Stage2Config
 from t3fast.training.distributed import barrier, is_main
 from t3fast.training.gathered import fits_on
+from t3fast.training.step_draws import toss
 from t3fast.training.triplane_cache import cached_scene_triplanes
 from t3fast.training.world_model.delta_loss import delta_rollout_loss
 from t3fast.training.world_model.forwards import FlowMotionModel, RolloutModel
@@ -35,7 +36,7 @@ from t3fast.training.world_model.latent_cache import (
     collate_aligned,
     resident_bytes,
 )
-from t3fast.training.world_model.latent_flips import flip_aligned, random_flips
+from t3fast.training.world_model.latent_flips import draw_flips, flip_aligned, random_flips
 from t3fast.training.world_model.loss import rollout_loss
 from t3fast.training.world_model.motion_loss import motion_loss
 from t3fast.training.world_model.plan_loss import plan_batch
@@ -124,12 +125,11 @@ class WorldModelTask:
                 if is_main():
                     cache.build()
                 barrier()
-                if not data.cache_labels:  # held on the GPU where they fit, else read from disk by the loader
-                    device = next(self._model.parameters()).device
+                device = next(self._model.parameters()).device  # the windows are held there if they fit
+                if not data.cache_labels:  # else read from disk by the loader
                     fits = fits_on(device, cache.stored_bytes())
                     return AlignedBatches(cache, device, progress=is_main()) if fits else cache
                 labelled = LabelledAlignedWindows(cache)
-                device = next(self._model.parameters()).device  # held there if they fit
                 fits = fits_on(device, resident_bytes(labelled))
                 return ResidentAlignedWindows(labelled, device, progress=is_main()) if fits else labelled
             if self.cfg.model.ego_aligned:  # moved into each window's present frame, encoded in the step
@@ -185,8 +185,8 @@ class WorldModelTask:
         replays one graph per variant; see :class:`~t3fast.training.task.Task`): on the cached
         latent windows the planner's mirror and the flips, then the rollout start."""
         aligned = self.cfg.model.ego_aligned and self.cfg.data.latent_cache and not self.cfg.data.cache_labels
-        mirror = bool(torch.rand(()) < 0.5) if aligned and self._trains_planner(self._model) else None
-        flips = tuple(bool(v) for v in torch.randint(0, 2, (3,))) if aligned and self.cfg.data.latent_flips else None
+        mirror = toss() if aligned and self._trains_planner(self._model) else None
+        flips = draw_flips() if aligned and self.cfg.data.latent_flips else None
         start = self._rollout_start() if self.cfg.model.forecaster != "flow" else None
         self._drawn = StepChoices(mirror, flips, start)
         return self._drawn

@@ -1,10 +1,11 @@
-"""The per-step coin toss a task draws for ``train.cuda_graph`` before the step, or the step itself."""
+"""The random draws of a training step: the per-step coin toss a task draws for ``train.cuda_graph``
+before the step, or the step itself."""
 
 from __future__ import annotations
 
 import torch
 
-from t3fast.training.coin_toss import CoinToss
+from t3fast.training.step_draws import CoinToss
 
 
 def test_the_step_takes_the_toss_drawn_for_it_else_tosses_itself_from_the_same_stream():

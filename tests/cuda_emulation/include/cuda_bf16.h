@@ -1,0 +1,30 @@
+// CUDA's __nv_bfloat16 on the emulator: the upper half of a binary32, rounded to nearest even.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+struct __nv_bfloat16 {
+  uint16_t bits;
+};
+
+inline float __bfloat162float(__nv_bfloat16 h) {
+  const uint32_t u = static_cast<uint32_t>(h.bits) << 16;
+  float v;
+  std::memcpy(&v, &u, 4);
+  return v;
+}
+
+inline __nv_bfloat16 __float2bfloat16_rn(float f) {
+  uint32_t u;
+  std::memcpy(&u, &f, 4);
+  __nv_bfloat16 h;
+  if (std::isnan(f)) {
+    h.bits = static_cast<uint16_t>((u >> 16) | 0x40u);
+  } else {
+    u += 0x7FFFu + ((u >> 16) & 1u);
+    h.bits = static_cast<uint16_t>(u >> 16);
+  }
+  return h;
+}

@@ -1,0 +1,297 @@
+// The emulator's runtime: CUDA's execution model on the host, for testing kernels on a
+// machine without a GPU.
+//
+// A launch runs its blocks one after another. A block's threads are fibers (ucontext) on one
+// host thread, each with its own stack; a fiber runs until it reaches a barrier
+// (__syncthreads, __syncthreads_or, __syncwarp) or returns, then the next one runs. A
+// barrier opens when every live thread of its scope (the block, or the warp) waits at it; a
+// block whose threads wait at barriers that can never open (divergent barriers) fails the
+// launch, as does any misuse the emulator checks (see emu_fail). Blocks share nothing but
+// global memory, so running them in order shows the same results as a GPU gives for
+// race-free kernels. Shared memory: `__shared__` variables are function statics (one copy,
+// shared by the block's fibers; blocks run one at a time), the dynamic buffer is a fresh
+// allocation of exactly the launch's size per block, followed by guard bytes that are
+// checked after the block.
+#pragma once
+
+#include <ucontext.h>
+
+#include <math.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+struct dim3 {
+  unsigned x = 1, y = 1, z = 1;
+  dim3() = default;
+  dim3(unsigned x_, unsigned y_ = 1, unsigned z_ = 1) : x(x_), y(y_), z(z_) {}
+};
+
+namespace t3emu {
+
+enum class Wait { kNone, kBlock, kWarp, kDone };
+
+struct Fiber {
+  ucontext_t ctx;
+  std::unique_ptr<char[]> stack;
+  dim3 thread_idx;
+  unsigned linear = 0;  // x fastest, as CUDA numbers the threads of a block
+  Wait wait = Wait::kNone;
+  int vote = 0;    // this thread's operand of a voting barrier
+  int result = 0;  // the vote's result, once the barrier opens
+};
+
+struct BlockState {
+  dim3 block_idx, block_dim, grid_dim;
+  std::vector<Fiber> fibers;
+  ucontext_t scheduler;
+  Fiber* current = nullptr;
+  unsigned char* smem = nullptr;
+  const std::function<void()>* body = nullptr;
+};
+
+inline BlockState*& block_state() {
+  static thread_local BlockState* state = nullptr;
+  return state;
+}
+
+// The first error of the current launch (empty: none).
+inline std::string& launch_error() {
+  static thread_local std::string error;
+  return error;
+}
+
+// Records a misuse of the CUDA model and ends the calling thread's fiber; the launch then
+// fails with this message.
+[[noreturn]] inline void emu_fail(const std::string& what) {
+  if (launch_error().empty()) launch_error() = what;
+  BlockState* b = block_state();
+  if (b == nullptr || b->current == nullptr) {
+    std::fprintf(stderr, "t3emu: %s\n", what.c_str());
+    std::abort();
+  }
+  b->current->wait = Wait::kDone;
+  swapcontext(&b->current->ctx, &b->scheduler);
+  std::abort();  // a failed fiber is never resumed
+}
+
+inline const dim3& thread_idx() { return block_state()->current->thread_idx; }
+inline const dim3& block_idx() { return block_state()->block_idx; }
+inline const dim3& block_dim() { return block_state()->block_dim; }
+inline const dim3& grid_dim() { return block_state()->grid_dim; }
+inline unsigned char* dynamic_smem() { return block_state()->smem; }
+
+inline void wait_at(Wait w, int vote) {
+  BlockState* b = block_state();
+  b->current->wait = w;
+  b->current->vote = vote;
+  swapcontext(&b->current->ctx, &b->scheduler);
+}
+
+inline void fiber_entry() {
+  BlockState* b = block_state();
+  (*b->body)();
+  b->current->wait = Wait::kDone;
+  swapcontext(&b->current->ctx, &b->scheduler);
+}
+
+constexpr size_t kStackBytes = 256 * 1024;
+constexpr size_t kGuardBytes = 4096;
+constexpr unsigned char kGuard = 0xA5;
+
+// Runs one block of `body` to completion; false (and launch_error set) when it failed.
+inline bool run_block(BlockState& b) {
+  const unsigned threads = b.block_dim.x * b.block_dim.y * b.block_dim.z;
+  b.fibers = std::vector<Fiber>(threads);
+  for (unsigned t = 0; t < threads; ++t) {
+    Fiber& f = b.fibers[t];
+    f.linear = t;
+    f.thread_idx = dim3(t % b.block_dim.x, t / b.block_dim.x % b.block_dim.y,
+                        t / (b.block_dim.x * b.block_dim.y));
+    f.stack.reset(new char[kStackBytes]);
+    getcontext(&f.ctx);
+    f.ctx.uc_stack.ss_sp = f.stack.get();
+    f.ctx.uc_stack.ss_size = kStackBytes;
+    f.ctx.uc_link = nullptr;
+    makecontext(&f.ctx, fiber_entry, 0);
+  }
+  const unsigned warps = (threads + 31) / 32;
+  while (true) {
+    for (Fiber& f : b.fibers) {
+      if (f.wait != Wait::kNone) continue;
+      b.current = &f;
+      swapcontext(&b.scheduler, &f.ctx);
+      b.current = nullptr;
+      if (!launch_error().empty()) return false;
+    }
+    bool released = false;
+    for (unsigned w = 0; w < warps; ++w) {
+      const unsigned lo = w * 32, hi = lo + 32 < threads ? lo + 32 : threads;
+      bool any = false, all = true;
+      for (unsigned t = lo; t < hi; ++t) {
+        any |= b.fibers[t].wait == Wait::kWarp;
+        all &= b.fibers[t].wait == Wait::kWarp || b.fibers[t].wait == Wait::kDone;
+      }
+      if (any && all) {
+        for (unsigned t = lo; t < hi; ++t) {
+          if (b.fibers[t].wait == Wait::kWarp) b.fibers[t].wait = Wait::kNone;
+        }
+        released = true;
+      }
+    }
+    if (released) continue;
+    bool any_block = false, all_block = true;
+    int vote = 0;
+    for (Fiber& f : b.fibers) {
+      any_block |= f.wait == Wait::kBlock;
+      all_block &= f.wait == Wait::kBlock || f.wait == Wait::kDone;
+      if (f.wait == Wait::kBlock) vote |= f.vote;
+    }
+    if (!any_block) break;  // every thread returned
+    if (!all_block) {
+      launch_error() = "divergent barriers: some threads of a block wait at __syncthreads while "
+                       "others wait at __syncwarp";
+      return false;
+    }
+    for (Fiber& f : b.fibers) {
+      if (f.wait == Wait::kBlock) {
+        f.wait = Wait::kNone;
+        f.result = vote;
+      }
+    }
+  }
+  return true;
+}
+
+// Kernels' dynamic shared memory limits set by cudaFuncSetAttribute.
+inline std::map<const void*, int>& smem_limits() {
+  static std::map<const void*, int> limits;
+  return limits;
+}
+
+constexpr int kDefaultSmem = 48 * 1024;
+constexpr int kOptinSmem = 227 * 1024;  // an H100's opt-in limit per block
+constexpr int kSms = 132;
+
+inline int& last_error() {
+  static thread_local int err = 0;
+  return err;
+}
+
+// Runs a launch; returns 0 (cudaSuccess) or an error code, with launch_error() saying why.
+inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
+                    const std::function<void()>& body) {
+  launch_error().clear();
+  const unsigned threads = block.x * block.y * block.z;
+  if (threads == 0 || threads > 1024 || grid.x == 0 || grid.y == 0 || grid.z == 0 ||
+      grid.y > 65535 || grid.z > 65535) {
+    launch_error() = "invalid launch configuration";
+    return last_error() = 9;  // cudaErrorInvalidConfiguration
+  }
+  auto limit = smem_limits().find(kernel);
+  const size_t allowed = limit == smem_limits().end() ? kDefaultSmem : limit->second;
+  if (smem > allowed) {
+    launch_error() = "launch asks for " + std::to_string(smem) +
+                     " bytes of dynamic shared memory, more than the kernel's limit " +
+                     std::to_string(allowed) + " (cudaFuncSetAttribute)";
+    return last_error() = 1;  // cudaErrorInvalidValue
+  }
+  BlockState b;
+  b.block_dim = block;
+  b.grid_dim = grid;
+  b.body = &body;
+  std::unique_ptr<unsigned char[]> raw(new unsigned char[smem + kGuardBytes + 128]);
+  unsigned char* aligned = reinterpret_cast<unsigned char*>(
+      (reinterpret_cast<uintptr_t>(raw.get()) + 127) / 128 * 128);
+  BlockState* outer = block_state();
+  block_state() = &b;
+  int err = 0;
+  for (unsigned z = 0; z < grid.z && err == 0; ++z) {
+    for (unsigned y = 0; y < grid.y && err == 0; ++y) {
+      for (unsigned x = 0; x < grid.x && err == 0; ++x) {
+        b.block_idx = dim3(x, y, z);
+        // garbage, as a GPU leaves it: a kernel must not read shared memory it did not write
+        std::memset(aligned, 0x7F, smem);
+        std::memset(aligned + smem, kGuard, kGuardBytes);
+        b.smem = aligned;
+        if (!run_block(b)) {
+          err = 719;  // cudaErrorLaunchFailure
+          break;
+        }
+        for (size_t i = 0; i < kGuardBytes; ++i) {
+          if (aligned[smem + i] != kGuard) {
+            launch_error() = "a block wrote past the end of its dynamic shared memory (" +
+                             std::to_string(smem) + " bytes) at byte " +
+                             std::to_string(smem + i);
+            err = 719;
+            break;
+          }
+        }
+      }
+    }
+  }
+  block_state() = outer;
+  last_error() = err;
+  return err;
+}
+
+// kernel<<<grid, block, smem, stream>>>(args...) is rewritten to
+// t3emu::launch(kernel, grid, block, smem, stream)(args...).
+template <typename Kernel>
+auto launch(Kernel* kernel, dim3 grid, dim3 block, size_t smem = 0, void* stream = nullptr) {
+  (void)stream;
+  return [=](auto... args) {
+    const std::function<void()> body = [&]() { kernel(args...); };
+    run_grid(reinterpret_cast<const void*>(kernel), grid, block, smem, body);
+  };
+}
+
+}  // namespace t3emu
+
+// ---- what device code sees
+
+#define threadIdx (::t3emu::thread_idx())
+#define blockIdx (::t3emu::block_idx())
+#define blockDim (::t3emu::block_dim())
+#define gridDim (::t3emu::grid_dim())
+
+#define __global__
+#define __device__
+#define __host__
+#define __forceinline__ inline
+#define __launch_bounds__(...)
+#define __grid_constant__
+#define __align__(n) alignas(n)
+#define __shared__ static
+
+inline void __syncthreads() { ::t3emu::wait_at(::t3emu::Wait::kBlock, 0); }
+inline int __syncthreads_or(int v) {
+  ::t3emu::wait_at(::t3emu::Wait::kBlock, v != 0);
+  return ::t3emu::block_state()->current->result;
+}
+inline void __syncwarp(unsigned mask = 0xffffffffu) {
+  if (mask != 0xffffffffu) ::t3emu::emu_fail("__syncwarp with a partial mask is not emulated");
+  ::t3emu::wait_at(::t3emu::Wait::kWarp, 0);
+}
+[[noreturn]] inline void __trap() { ::t3emu::emu_fail("__trap() reached"); }
+
+// Blocks run one at a time on one host thread: an atomic is a plain read-modify-write.
+template <typename T>
+inline T atomicAdd(T* address, T v) {
+  const T old = *address;
+  *address = old + v;
+  return old;
+}
+
+inline int min(int a, int b) { return a < b ? a : b; }
+inline int max(int a, int b) { return a > b ? a : b; }
+inline int64_t min(int64_t a, int64_t b) { return a < b ? a : b; }
+inline int64_t max(int64_t a, int64_t b) { return a > b ? a : b; }

@@ -1,0 +1,80 @@
+// Kernels that check the emulator itself: each is correct only if the emulator keeps CUDA's
+// rules (barriers, shared memory, WMMA alignment), or breaks one of them on purpose.
+#include <cuda_runtime.h>
+#include <mma.h>
+
+#include <string>
+
+namespace {
+
+constexpr int kThreads = 128;
+
+// out = in reversed, through shared memory: right only if __syncthreads really waits.
+__global__ void reverse_kernel(const float* in, float* out) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  const int t = threadIdx.x;
+  buf[t] = in[blockIdx.x * kThreads + t];
+  __syncthreads();
+  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
+}
+
+// out[block] = 1 when any input of the block is positive (__syncthreads_or), written by
+// thread 0; every thread also counts how many of its warp's lanes passed __syncwarp.
+__global__ void vote_kernel(const float* in, float* out) {
+  __shared__ int lanes[kThreads / 32];
+  const int t = threadIdx.x;
+  if (t % 32 == 0) lanes[t / 32] = 0;
+  __syncwarp();
+  atomicAdd(&lanes[t / 32], 1);
+  __syncwarp();
+  const int any = __syncthreads_or(in[blockIdx.x * kThreads + t] > 0.f);
+  if (t == 0) out[blockIdx.x] = static_cast<float>(any) + 10.f * lanes[0];
+}
+
+// Thread 0 waits at __syncthreads, the rest of its warp at __syncwarp: neither opens.
+__global__ void divergent_kernel(float* out) {
+  if (threadIdx.x == 0) {
+    __syncthreads();
+  } else {
+    __syncwarp();
+  }
+  out[threadIdx.x] = 1.f;
+}
+
+// Writes one float past the end of the dynamic shared memory.
+__global__ void overrun_kernel(int n) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  if (threadIdx.x == 0) buf[n] = 1.f;
+}
+
+// Loads a WMMA fragment from a pointer 2 bytes past an aligned one.
+__global__ void misaligned_kernel() {
+  extern __shared__ __align__(128) unsigned char smem[];
+  nvcuda::wmma::fragment<nvcuda::wmma::matrix_a, 16, 16, 16, __half, nvcuda::wmma::row_major> a;
+  nvcuda::wmma::load_matrix_sync(a, reinterpret_cast<const __half*>(smem + 2), 16);
+}
+
+}  // namespace
+
+// Runs the self-test `name` (see above) on n = blocks * 128 floats of in, out.
+cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks) {
+  if (name == "reverse") {
+    reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  } else if (name == "vote") {
+    vote_kernel<<<blocks, kThreads>>>(in, out);
+  } else if (name == "divergent") {
+    divergent_kernel<<<1, kThreads>>>(out);
+  } else if (name == "overrun") {
+    overrun_kernel<<<1, kThreads, 64 * sizeof(float)>>>(64);
+  } else if (name == "misaligned") {
+    misaligned_kernel<<<1, 32, 1024>>>();
+  } else if (name == "unopted_shared_memory") {
+    // 64 KB without cudaFuncSetAttribute: over the default 48 KB limit
+    reverse_kernel<<<1, kThreads, 64 * 1024>>>(in, out);
+  } else {
+    return cudaErrorInvalidValue;
+  }
+  return cudaGetLastError();
+}

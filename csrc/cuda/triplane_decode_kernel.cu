@@ -8,27 +8,31 @@
 //   1. the points' coordinates (read, or computed from the voxel index in grid mode) and
 //      batch index go to shared memory;
 //   2. the features (bilinear samples of the three planes, summed, then the positional
-//      encoding) are computed into the activation buffer `act` [feature][P + 1] in shared
+//      encoding) are computed into the activation buffer `act` [feature][P + 4] in shared
 //      memory (point index contiguous);
 //   3. every layer is a small GEMM out[P, n_out] = act[P, n_in] W^T + b: each thread keeps a
 //      register tile of TP points x 8 outputs in fp32 (double for double), the weights
-//      stream through shared memory in chunks of 8 input features (`wsm` [n_out][8 + 1],
-//      converted to the accumulation type on the way), and the activations are read from
-//      shared memory. Once the whole layer is in registers (after a barrier) the threads
-//      overwrite `act` in place, so one buffer of P x max-width values is enough;
+//      stream through shared memory in chunks of 8 input features (converted to the
+//      accumulation type on the way), and the activations are read from shared memory. Once
+//      the whole layer is in registers (after a barrier) the threads overwrite `act` in place,
+//      so one buffer of P x max-width values is enough;
 //   4. the last layer's values are written as logits (coalesced, one row per point) or
 //      reduced to the first-maximum class per point (uint8 labels; no logits anywhere).
 // The block holds 256 x 64 = 16384 accumulators per layer at most, hence P = 128 points for
 // widths up to 128, 64 up to 256, 32 up to 512 (kTriplaneMaxWidth); the launcher takes the
 // largest P that covers the widest layer and whose shared memory fits the device. Narrow
 // layers (e.g. the class layer) use a thinner register tile (TP = 4, 2, 1 points per thread)
-// so that most threads still have work. In the inner loop a warp reads one broadcast or
-// consecutive activations and consecutive rows of `wsm` (odd row length): no bank conflicts,
-// and all offsets are compile-time constants from two base registers. Shared memory per
-// block is ((P + 1) x padded widest width + rows x 9 + 3 P) x 4 + 8 P bytes, e.g. about
-// 72 KB for hidden width 128 (P = 128) or 75 KB for 256 (P = 64): two blocks per SM on A100
-// and H100 (the kernel is built for at most 128 registers per thread for that reason). The
-// weights are re-read from L2 once per tile and layer. Tensor cores are not used.
+// so that most threads still have work; their weight chunk is `wsm` [n_out][8 + 1] (odd row:
+// conflict-free), read one value at a time. The wide layers (TP = 8, the hidden layers of the
+// papers' decoder) in float use mlp_layer_wide: every shared-memory read is a 128-bit load
+// without bank conflicts (4 loads per 64 FMAs; the narrow tile's 16 loads per 64 FMAs left
+// the SIMT pipes waiting on shared memory), and the weights are double-buffered: the next
+// chunk is fetched into registers while the current one is multiplied, one barrier per chunk.
+// Shared memory per block is ((P + 4) x padded widest width + weight buffer + 3 P) x 4 + 8 P
+// bytes, the weight buffer max(rows x 9, 2 x 8 x (rows + 4)) values for the widest pass of
+// rows outputs, e.g. about 87 KB for hidden width 256 (P = 64): two blocks per SM on H100
+// (the kernel is built for at most 128 registers per thread for that reason). The weights are
+// re-read from L2 once per tile and layer. Tensor cores are not used.
 //
 // Backward: see triplane_decode.cpp (chunked recomputation with cuBLAS GEMMs); the kernels
 // here compute a chunk's features and scatter the feature gradient into the planes.
@@ -36,6 +40,7 @@
 #include "cuda/triplane_sample.cuh"
 
 #include <climits>
+#include <type_traits>
 
 namespace t3fast {
 namespace cuda {
@@ -46,17 +51,19 @@ constexpr int kTileOut = 8;    // outputs per thread in a layer's register tile
 constexpr int kMaxTileRows = 8;  // points per thread at the widest layout
 constexpr int kMaxGridBlocks = 1 << 16;  // cap of grid-stride launches
 
-// Input features per staged weight chunk. 8 keeps the chunk small enough (9 KB at 256
-// outputs) for two blocks of the 256-wide configuration per SM on A100 (164 KB per SM).
+// Input features per staged weight chunk. 8 keeps the two chunk buffers small (16 KB at 256
+// outputs): two blocks of the 256-wide configuration per SM on H100 / H200 (228 KB per SM);
+// an A100 (164 KB) holds one.
 constexpr int kChunk = 8;
 
 __host__ __device__ constexpr int round_up(int v, int m) { return (v + m - 1) / m * m; }
 
-// Row length of the activation buffer act [features][P + 1]: the point index is contiguous,
-// and the odd row length keeps the column reads of the epilogue free of bank conflicts.
+// Row length of the activation buffer act [features][P + 4]: the point index is contiguous,
+// rows stay 16-byte aligned for the wide tile's 128-bit loads, and the 4 extra values spread
+// a column's rows over the banks.
 template <int P>
 __host__ __device__ constexpr int act_row() {
-  return P + 1;
+  return P + 4;
 }
 
 // Outputs one pass of a layer covers with a tile of P points and tp points per thread.
@@ -81,6 +88,14 @@ __host__ __device__ inline int mlp_weight_rows(int P, const int* widths, int num
     rows = covered > rows ? covered : rows;
   }
   return rows;
+}
+
+// Values of the weight buffer: one chunk [rows][kChunk + 1] for the narrow tiles, or two
+// chunks [kChunk][rows + 4] for the wide tile (double-buffered).
+__host__ __device__ inline int weight_buffer_values(int rows) {
+  const int narrow = rows * (kChunk + 1);
+  const int wide = 2 * kChunk * (rows + 4);
+  return narrow > wide ? narrow : wide;
 }
 
 // One linear layer of the fused kernel on the activations of the tile, in place:
@@ -152,6 +167,109 @@ __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
   __syncthreads();
 }
 
+// The widest register tile (8 points x 8 outputs per thread) in float: the layer of
+// mlp_layer<kMaxTileRows, P> with every shared-memory read a 128-bit load. A warp covers 32
+// points x 64 outputs as 4 x 8 threads: a thread owns 8 consecutive points and two runs of 4
+// outputs 32 apart, so a warp's loads of activations (4 distinct 16-byte runs) and of weights
+// (two 128-byte rows) are free of bank conflicts: 4 loads per 64 FMAs instead of 16. The
+// weights stream through two chunk buffers wbuf [2][kChunk][rows + 4] (the 4 extra columns
+// make the transposing stores conflict-free): the next chunk is fetched from global memory
+// into registers while the current one is used, stored after it, and one barrier per chunk
+// separates the two.
+template <typename T, int P>
+__device__ __forceinline__ void mlp_layer_wide(const T* __restrict__ weight,
+                                               const T* __restrict__ bias, int in, int out,
+                                               bool relu, float* act, float* wbuf) {
+  constexpr int kRow = act_row<P>();
+  constexpr int kWarpPoints = 32;
+  constexpr int kWarpOutputs = 64;
+  constexpr int kWarpRows = P / kWarpPoints;
+  constexpr int kWarpCols = kThreads / 32 / kWarpRows;
+  constexpr int kRows = kWarpCols * kWarpOutputs;  // outputs covered
+  constexpr int kWRow = kRows + 4;
+  constexpr int kLoads = kRows * kChunk / kThreads;  // weight values each thread fetches
+  static_assert(kRows == outputs_covered(P, kMaxTileRows) && kLoads * kThreads == kRows * kChunk,
+                "bad wide tile");
+  const int warp = threadIdx.x / 32;
+  const int lane = threadIdx.x % 32;
+  const int p0 = (warp / kWarpCols) * kWarpPoints + (lane / 8) * 8;
+  const int o0 = (warp % kWarpCols) * kWarpOutputs + (lane % 8) * 4;
+
+  float acc[kMaxTileRows][kTileOut];  // [point p0 + i][output o0 + j (+ 28 for j >= 4)]
+#pragma unroll
+  for (int j = 0; j < kTileOut; ++j) {
+    const int o = o0 + j + (j >= 4 ? 28 : 0);
+    const float b = o < out ? to_acc(bias[o]) : 0.f;
+#pragma unroll
+    for (int i = 0; i < kMaxTileRows; ++i) acc[i][j] = b;
+  }
+
+  // Thread t fetches input t % kChunk of the weight rows t / kChunk + kRowStep * l: with
+  // consecutive threads on 8 consecutive inputs of a row, a warp reads whole 32-byte sectors.
+  constexpr int kRowStep = kThreads / kChunk;
+  static_assert(kThreads % kChunk == 0, "bad chunk");
+  const int kk_t = threadIdx.x % kChunk;
+  const int o_t = threadIdx.x / kChunk;
+  const T* w_t = weight + static_cast<int64_t>(o_t) * in + kk_t;
+  float next[kLoads];
+  const auto fetch = [&](int k0) {
+    const bool k_ok = k0 + kk_t < in;
+#pragma unroll
+    for (int l = 0; l < kLoads; ++l) {
+      const bool ok = k_ok && o_t + kRowStep * l < out;
+      next[l] = ok ? to_acc(w_t[static_cast<int64_t>(kRowStep) * l * in + k0]) : 0.f;
+    }
+  };
+  const auto stash = [&](float* chunk) {
+#pragma unroll
+    for (int l = 0; l < kLoads; ++l) chunk[kk_t * kWRow + o_t + kRowStep * l] = next[l];
+  };
+
+  const int chunks = (in + kChunk - 1) / kChunk;
+  fetch(0);
+  __syncthreads();  // act is complete, and nobody reads wbuf any more
+  stash(wbuf);
+  __syncthreads();
+  for (int c = 0; c < chunks; ++c) {
+    const float* chunk = wbuf + (c % 2) * kChunk * kWRow;
+    if (c + 1 < chunks) fetch((c + 1) * kChunk);
+#pragma unroll
+    for (int kk = 0; kk < kChunk; ++kk) {
+      const float* a_row = act + (c * kChunk + kk) * kRow + p0;
+      const float* w_row = chunk + kk * kWRow + o0;
+      const float4 a_lo = *reinterpret_cast<const float4*>(a_row);
+      const float4 a_hi = *reinterpret_cast<const float4*>(a_row + 4);
+      const float4 w_lo = *reinterpret_cast<const float4*>(w_row);
+      const float4 w_hi = *reinterpret_cast<const float4*>(w_row + 32);
+      const float a[kMaxTileRows] = {a_lo.x, a_lo.y, a_lo.z, a_lo.w, a_hi.x, a_hi.y, a_hi.z, a_hi.w};
+      const float w[kTileOut] = {w_lo.x, w_lo.y, w_lo.z, w_lo.w, w_hi.x, w_hi.y, w_hi.z, w_hi.w};
+#pragma unroll
+      for (int i = 0; i < kMaxTileRows; ++i) {
+#pragma unroll
+        for (int j = 0; j < kTileOut; ++j) acc[i][j] += a[i] * w[j];
+      }
+    }
+    // the other buffer was last read before the previous barrier
+    if (c + 1 < chunks) stash(wbuf + ((c + 1) % 2) * kChunk * kWRow);
+    __syncthreads();  // after the last chunk: all reads of this layer's inputs are done
+  }
+
+  const int out_pad = round_up(out, kChunk);
+#pragma unroll
+  for (int j = 0; j < kTileOut; ++j) {
+    const int o = o0 + j + (j >= 4 ? 28 : 0);
+    if (o < out_pad) {
+#pragma unroll
+      for (int i = 0; i < kMaxTileRows; ++i) {
+        float v = acc[i][j];
+        if (relu && v < 0.f) v = 0.f;  // keeps NaN, like torch.relu
+        act[o * kRow + p0 + i] = o < out ? v : 0.f;
+      }
+    }
+  }
+  __syncthreads();
+}
+
 template <typename T, int P>
 __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
     fused_decode_kernel(const Triplane<T> planes, const Query<T> query, const int pe_freqs,
@@ -162,8 +280,8 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
   extern __shared__ __align__(16) unsigned char smem[];
   int64_t* batch_of = reinterpret_cast<int64_t*>(smem);  // [P]
   A* coord = reinterpret_cast<A*>(batch_of + P);         // [P][3]
-  A* wsm = coord + 3 * P;                                // [rows][kChunk + 1]
-  A* act = wsm + mlp_weight_rows(P, mlp.width, mlp.num_layers) * (kChunk + 1);  // [width][kRow]
+  A* wsm = coord + 3 * P;  // the weight buffer (weight_buffer_values)
+  A* act = wsm + weight_buffer_values(mlp_weight_rows(P, mlp.width, mlp.num_layers));  // [width][kRow]
 
   const int64_t total = planes.batch * query.num_points;
   const int64_t first = static_cast<int64_t>(blockIdx.x) * P;
@@ -197,7 +315,11 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
         mlp_layer<4, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
         break;
       default:
-        mlp_layer<kMaxTileRows, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        if constexpr (std::is_same_v<A, float>) {
+          mlp_layer_wide<T, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        } else {
+          mlp_layer<kMaxTileRows, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        }
         break;
     }
   }
@@ -236,7 +358,7 @@ size_t fused_shared_bytes(const int* widths, int num_layers) {
   int widest = 1;  // at least one row: the argmax epilogue reads row 0 even with no classes
   for (int i = 0; i <= num_layers; ++i) widest = widths[i] > widest ? widths[i] : widest;
   const size_t values = 3 * P +
-                        static_cast<size_t>(mlp_weight_rows(P, widths, num_layers)) * (kChunk + 1) +
+                        static_cast<size_t>(weight_buffer_values(mlp_weight_rows(P, widths, num_layers))) +
                         static_cast<size_t>(round_up(widest, kChunk)) * act_row<P>();
   return P * sizeof(int64_t) + values * sizeof(A);
 }

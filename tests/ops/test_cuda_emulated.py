@@ -74,13 +74,20 @@ def test_emulator_fails_launches_that_break_cuda_rules(emu, name, message):
 
 @pytest.mark.parametrize("hidden, classes", WIDTHS)
 @pytest.mark.parametrize("mode", ["grid", "points"])
-def test_simt_forward_float64_is_the_reference(emu, hidden, classes, mode):
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_simt_forward_is_the_reference(emu, hidden, classes, mode, dtype, tol):
+    """float64 to its rounding; float32 (the wide tile's 128-bit loads) to float32's, against
+    the float64 reference."""
     planes, weights, biases = float64_case(hidden, classes)
     points = points_pair(torch.float32, n=500, device="cpu")[1].double()
     query = {"grid": GRID} if mode == "grid" else {"points": points}
-    got = run(emu, planes, weights, biases, precision="cuda_cores", pe_freqs=2, **query)
     want = reference.triplane_decode(*planes, weights, biases, pe_freqs=2, **query)
-    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * want.abs().max().item())
+    if dtype != torch.float64:
+        planes, weights, biases = ([t.to(dtype) for t in group] for group in (planes, weights, biases))
+        query = {"grid": GRID} if mode == "grid" else {"points": points.to(dtype)}
+    got = run(emu, planes, weights, biases, precision="cuda_cores", pe_freqs=2, **query)
+    assert got.dtype == dtype
+    torch.testing.assert_close(got.double(), want, rtol=tol, atol=tol * want.abs().max().item())
 
 
 @pytest.mark.parametrize("mode", ["grid", "points"])

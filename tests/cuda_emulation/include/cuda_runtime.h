@@ -3,6 +3,10 @@
 
 #include "t3emu.h"
 
+struct alignas(16) float4 {
+  float x, y, z, w;
+};
+
 typedef int cudaError_t;
 constexpr cudaError_t cudaSuccess = 0;
 constexpr cudaError_t cudaErrorInvalidValue = 1;

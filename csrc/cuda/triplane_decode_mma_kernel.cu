@@ -15,7 +15,9 @@
 //      output tiles (WN = the column tiles, up to 8; the remaining warps split the rows),
 //      each warp keeps at most 8 accumulator tiles of 16 x 16 in registers, reads A from
 //      shared memory and B (the zero-padded weights, prepared once per call by the host
-//      glue) straight from global memory, where every block re-reads them from L2. After a
+//      glue) straight from global memory, where every block re-reads them from L2; with up
+//      to 2 column tiles per warp the B tiles of the next depth are loaded while the current
+//      ones multiply (two register sets), hiding the L2 latency. After a
 //      barrier every warp moves its tiles through a per-warp scratch tile, adds the bias and
 //      applies the ReLU in fp32 and writes them back into `act`, rounded to the operand type
 //      (in place: all reads of the layer's input are done);
@@ -162,18 +164,21 @@ __device__ __forceinline__ void mma_layer(const mma_storage_t<Mma>* __restrict__
 #pragma unroll
       for (int j = 0; j < NTW; ++j) wmma::fill_fragment(acc[i][j], 0.f);
     }
-    for (int k0 = 0; k0 < s.in_pad; k0 += kK) {
-      wmma::fragment<wmma::matrix_b, kTile, kTile, kK, Operand, wmma::col_major> b[NTW];
+    using BFragment = wmma::fragment<wmma::matrix_b, kTile, kTile, kK, Operand, wmma::col_major>;
+    // The warp's B tiles of depth k0 (from L2): column n of W^T is row n of W, and W
+    // [out_pad, in_pad] row-major is W^T column-major.
+    const auto load_b = [&](BFragment (&b)[NTW], int k0) {
 #pragma unroll
       for (int j = 0; j < NTW; ++j) {
         const int n = wn_index + WN * j;
         if (n < s.col_tiles) {
-          // column n of W^T is row n of W: [out_pad, in_pad] row-major is W^T column-major
           wmma::load_matrix_sync(b[j], weight + static_cast<int64_t>(n) * kTile * s.in_pad + k0,
                                  s.in_pad);
           Ops::round(b[j]);
         }
       }
+    };
+    const auto multiply = [&](const BFragment (&b)[NTW], int k0) {
 #pragma unroll
       for (int i = 0; i < MTW; ++i) {
         wmma::fragment<wmma::matrix_a, kTile, kTile, kK, Operand, wmma::row_major> a;
@@ -183,6 +188,27 @@ __device__ __forceinline__ void mma_layer(const mma_storage_t<Mma>* __restrict__
         for (int j = 0; j < NTW; ++j) {
           if (wn_index + WN * j < s.col_tiles) wmma::mma_sync(acc[i][j], a, b[j], acc[i][j]);
         }
+      }
+    };
+    if constexpr (NTW <= 2) {
+      // Two sets of B tiles: the next depth's are loaded while the current ones multiply, so
+      // the L2 latency hides behind the products.
+      BFragment b0[NTW], b1[NTW];
+      load_b(b0, 0);
+      for (int k0 = 0; k0 < s.in_pad; k0 += 2 * kK) {
+        const bool second = k0 + kK < s.in_pad;  // in_pad / kK may be odd
+        if (second) load_b(b1, k0 + kK);
+        multiply(b0, k0);
+        if (!second) break;
+        if (k0 + 2 * kK < s.in_pad) load_b(b0, k0 + 2 * kK);
+        multiply(b1, k0 + kK);
+      }
+    } else {
+      // 4 column tiles per warp (layers wider than 256): a second set would spill
+      BFragment b[NTW];
+      for (int k0 = 0; k0 < s.in_pad; k0 += kK) {
+        load_b(b, k0);
+        multiply(b, k0);
       }
     }
   }

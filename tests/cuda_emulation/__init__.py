@@ -1,15 +1,20 @@
-"""t3fast's CUDA kernels run on the CPU by an emulator, for testing them without a GPU.
+"""t3fast's CUDA operators run on the CPU by an emulator, for testing them without a GPU.
 
-The kernel files (``csrc/cuda/*_kernel.cu``) are compiled by the host compiler against the
-headers in ``include/``, which stand in for the CUDA runtime, ``cuda_fp16.h``, ``cuda_bf16.h``
-and WMMA (``mma.h``): a block's threads run as fibers with real barriers, shared memory is
-per block with guard bytes, WMMA products round as the tensor cores do, and misuse (divergent
-barriers, misaligned fragment loads, overrunning shared memory, a launch asking for more
-shared memory than it opted into) fails the launch with a message. The only rewriting is
-mechanical: ``kernel<<<grid, block, smem, stream>>>(args)`` becomes a call, and the dynamic
-``extern __shared__`` buffer a pointer. ``harness.cpp`` calls the launchers as the CUDA glue
-does. What it cannot show: speed, the hardware's memory model beyond barriers (blocks run one
-at a time), and warp-synchronous code without barriers.
+The CUDA glue (``csrc/cuda/*.cpp``) and kernel files (``csrc/cuda/*_kernel.cu``) are compiled
+by the host compiler against the headers in ``include/``, which stand in for the CUDA runtime,
+``cuda_fp16.h``, ``cuda_bf16.h`` and WMMA (``mma.h``): a block's threads run as fibers with real
+barriers and warp exchanges, shared memory is per block with guard bytes, WMMA products round
+as the tensor cores do, and misuse (divergent barriers, misaligned fragment loads, overrunning
+shared memory, a launch asking for more shared memory than it opted into) fails the launch
+with a message. The glue registers its kernels as the CPU kernels of a library
+``t3fast_emu`` with t3fast's schemas, so ``torch.ops.t3fast_emu.<op>`` on CPU tensors runs
+exactly what ``torch.ops.t3fast.<op>`` runs on a GPU: the glue's checks, allocations and
+precision rules (it reads CUDA's autocast state and ``allow_tf32`` as on a GPU), then the
+kernels. The only rewriting is mechanical: ``kernel<<<grid, block, smem, stream>>>(args)``
+becomes a call, the dynamic ``extern __shared__`` buffer a pointer, and the glue's
+``TORCH_LIBRARY_IMPL(t3fast, CUDA, m)`` registers for ``t3fast_emu`` on the CPU. What it
+cannot show: speed, the hardware's memory model beyond barriers and atomics (blocks run one
+at a time, in order), and cuBLAS (the glue's GEMMs run as CPU GEMMs).
 """
 
 from __future__ import annotations
@@ -23,36 +28,79 @@ from types import ModuleType
 
 HERE = Path(__file__).resolve().parent
 CSRC = HERE.parents[1] / "csrc"
-KERNELS = ("triplane_decode_kernel.cu", "triplane_decode_mma_kernel.cu")
 
 _SHARED = re.compile(r"extern\s+__shared__\s+__align__\(\d+\)\s+unsigned char\s+(\w+)\[\];")
 _LAUNCH = re.compile(r"([A-Za-z_][\w:]*(?:<[^;{}<>]*>)?)<<<(.*?)>>>", re.DOTALL)
-_PRELUDE = "#define __CUDACC__ 1\n#define __CUDA_ARCH__ 900\n#include <cuda_runtime.h>\n"
+_KERNEL_PRELUDE = "#define __CUDACC__ 1\n#define __CUDA_ARCH__ 900\n#include <t3emu_device.h>\n"
+_MM_TO = re.compile(r"at::mm\(([^,()]+(?:\(\))?), ([^,()]+(?:\[\w+\])?), (\w+)\)")
+_SCHEMAS = re.compile(r"^TORCH_LIBRARY\(t3fast, m\) \{\n.*?^\}\n", re.DOTALL | re.MULTILINE)
 
 
-def rewrite(source: str) -> str:
+def rewrite_kernels(source: str) -> str:
     """A kernel file as host C++ for the emulator (see the module docstring)."""
     source = _SHARED.sub(r"unsigned char* \1 = ::t3emu::dynamic_smem();", source)
     source = _LAUNCH.sub(r"::t3emu::launch(\1, \2)", source)
-    return _PRELUDE + source
+    return _KERNEL_PRELUDE + source
+
+
+def rewrite_glue(source: str) -> str:
+    """A glue file registering its kernels for ``t3fast_emu`` on the CPU. Its GEMMs with a
+    float32 result of low-precision operands (``at::mm(a, b, acc)``, CUDA only) become float32
+    GEMMs of the same operands: exact products accumulated in float32, as cuBLAS computes them."""
+    if "TORCH_LIBRARY_IMPL(t3fast, CUDA, m)" not in source:
+        raise ValueError("glue file without TORCH_LIBRARY_IMPL(t3fast, CUDA, m)")
+    source = _MM_TO.sub(r"at::mm((\1).to(\3), (\2).to(\3))", source)
+    return source.replace("TORCH_LIBRARY_IMPL(t3fast, CUDA, m)", "TORCH_LIBRARY_IMPL(t3fast_emu, CPU, m)")
+
+
+def rewrite_checks(source: str) -> str:
+    """``csrc/checks.h`` with every tensor taken for a CUDA tensor where the dtypes a backend
+    accepts are checked: the emulated glue's tensors live on the CPU."""
+    if "  if (t.is_cuda()) {" not in source:
+        raise ValueError("csrc/checks.h no longer picks the accepted dtypes by t.is_cuda()")
+    return source.replace("  if (t.is_cuda()) {", "  if (true) {  // emulated CUDA")
+
+
+def schemas(source: str) -> str:
+    """t3fast's operator schemas (from ``csrc/t3fast.cpp``) as the library ``t3fast_emu``."""
+    block = _SCHEMAS.search(source)
+    if block is None:
+        raise ValueError("csrc/t3fast.cpp has no TORCH_LIBRARY(t3fast, m) block")
+    return "#include <torch/library.h>\n\n" + block.group(0).replace("TORCH_LIBRARY(t3fast, m)",
+                                                                     "TORCH_LIBRARY(t3fast_emu, m)")
+
+
+def _generated() -> dict[str, str]:
+    # the glue and triplane_args.cpp include "checks.h" from the build directory
+    files = {"schemas.cpp": schemas((CSRC / "t3fast.cpp").read_text()),
+             "checks.h": rewrite_checks((CSRC / "checks.h").read_text()),
+             "triplane_args.cpp": (CSRC / "triplane_args.cpp").read_text()}
+    for kernel in [*sorted((CSRC / "cuda").glob("*_kernel.cu")), HERE / "selftest_kernel.cu"]:
+        files[kernel.stem + ".cpp"] = rewrite_kernels(kernel.read_text())
+    for glue in sorted((CSRC / "cuda").glob("*.cpp")):
+        if glue.name != "stream.cpp":  # the emulator's stream comes from harness.cpp
+            files["glue_" + glue.name] = rewrite_glue(glue.read_text())
+    return files
 
 
 @cache
 def load() -> ModuleType:
-    """The emulated kernels' module (built once per content, in the temporary directory)."""
+    """Builds (once per content, in the temporary directory) and loads the emulated CUDA
+    operators: afterwards ``torch.ops.t3fast_emu`` holds them; the module has ``selftest``."""
     from torch.utils.cpp_extension import load as load_extension
 
-    inputs = [HERE / "harness.cpp", HERE / "selftest_kernel.cu", *sorted((HERE / "include").iterdir()), Path(__file__),
-              *(CSRC / "cuda" / k for k in KERNELS), CSRC / "cuda" / "kernels.h",
-              CSRC / "cuda" / "triplane_sample.cuh"]
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in inputs)).hexdigest()[:16]
+    files = _generated()
+    fixed = [HERE / "harness.cpp"]
+    inputs = [*fixed, *sorted((HERE / "include").iterdir()), *sorted(CSRC.glob("*.h")),
+              *sorted((CSRC / "cuda").glob("*.h")), *sorted((CSRC / "cuda").glob("*.cuh"))]
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in inputs)
+                            + "".join(files.values()).encode()).hexdigest()[:16]
     build = Path(tempfile.gettempdir()) / f"t3fast_cuda_emulation_{digest}"
     build.mkdir(parents=True, exist_ok=True)
-    sources = [str(HERE / "harness.cpp")]
-    for kernel in [*(CSRC / "cuda" / k for k in KERNELS), HERE / "selftest_kernel.cu"]:
-        target = build / (kernel.stem + ".cpp")
-        target.write_text(rewrite(kernel.read_text()))
-        sources.append(str(target))
+    for name, text in files.items():
+        if not (build / name).exists() or (build / name).read_text() != text:
+            (build / name).write_text(text)
+    sources = [str(p) for p in fixed] + [str(build / name) for name in files if name.endswith(".cpp")]
     return load_extension(name=f"t3fast_cuda_emulation_{digest}", sources=sources, build_directory=str(build),
-                          extra_include_paths=[str(HERE / "include"), str(CSRC)],
-                          extra_cflags=["-O2", "-std=c++17"], verbose=False)
+                          extra_include_paths=[str(build), str(HERE / "include"), str(CSRC)],
+                          extra_cflags=["-O2", "-ffp-contract=off"], verbose=False)

@@ -1,32 +1,36 @@
-"""The CUDA triplane_decode kernels on the CPU, run by the emulator in ``tests/cuda_emulation``.
+"""t3fast's CUDA operators on the CPU, run by the emulator in ``tests/cuda_emulation``.
 
-The CUDA tests need a GPU; these run the same kernel code (the SIMT forward, the tensor-core
-forward in every precision and tiling, the backward's feature and scatter kernels) on any
-machine, against the references the CUDA tests use with the same tolerances. The emulator
-checks CUDA's rules as it goes (barriers, shared memory bounds and limits, WMMA alignment);
-the first tests show that it does.
+``torch.ops.t3fast_emu.<op>`` is the CUDA glue and kernels of ``torch.ops.t3fast.<op>``
+(precision rules, tilings, workspaces, the backward's chunks), run on CPU tensors. Each test
+compares it with the op's CPU kernel, or for the low precisions with the rounded reference
+the CUDA tests use, with the CUDA tests' tolerances; the first tests show that the emulator
+enforces CUDA's rules. Speed is not shown here (see ``benchmarks/gpu``).
 """
 
 from __future__ import annotations
 
+import math
 import shutil
+from contextlib import contextmanager
 
 import pytest
 import torch
 
 from t3fast.ops import reference
-from tests.ops.lowp_reference import rounded_decode
-from tests.ops.test_cuda_lowp import assert_close_lowp, decoder, points_pair
+from tests.ops import test_bev_components as bev_cases
+from tests.ops import test_box_fit as box_fit_cases
+from tests.ops import test_draw_boxes as draw_cases
+from tests.ops.lowp_reference import kink_free_upstream, rounded_decode
+from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, assert_close_lowp, decoder, lowp_pair, points_pair
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="needs a host C++ compiler")
 
-# The tiling cases of the CUDA tests: every point tile of the SIMT kernel (128, 64, 32 points)
-# and every warp grid of the tensor-core kernel, odd widths, one class, many layers.
+# The tiling cases: every point tile of the SIMT kernel (128, 64, 32 points) and every warp
+# grid of the tensor-core kernel, odd widths, one class, many layers.
 WIDTHS = [((64, 64), 18), ((256,), 18), ((32, 128, 512), 18), ((17,), 1), ((130, 7), 3), ((48,) * 9, 5),
           ((40,), 40), ((90,), 70)]
 GRID = (9, 7, 5)
-PRECISION = {torch.float16: "half", torch.bfloat16: "bfloat16"}
 
 
 @pytest.fixture(scope="module")
@@ -36,14 +40,33 @@ def emu():
     return load()
 
 
-def run(emu, planes, weights, biases, *, precision, grid=None, points=None, pe_freqs=6, argmax=False,
-        live=None):
-    out = emu.decode(*planes, weights, biases, points, None if grid is None else list(grid), pe_freqs, argmax,
-                     live, precision)
-    batch = planes[0].shape[0]
-    if grid is not None:
-        return out.reshape(batch, *grid, *out.shape[2:])
-    return out
+@pytest.fixture(scope="module")
+def cuda_ops(emu):
+    return torch.ops.t3fast_emu
+
+
+@contextmanager
+def cuda_state(autocast: torch.dtype | None = None, tf32: bool = False):
+    """CUDA's autocast and TF32 settings, which the glue reads as on a GPU."""
+    saved = (torch.is_autocast_enabled("cuda"), torch.get_autocast_dtype("cuda"),
+             torch.backends.cuda.matmul.allow_tf32)
+    torch.set_autocast_enabled("cuda", autocast is not None)
+    if autocast is not None:
+        torch.set_autocast_dtype("cuda", autocast)
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+    try:
+        yield
+    finally:
+        torch.set_autocast_enabled("cuda", saved[0])
+        torch.set_autocast_dtype("cuda", saved[1])
+        torch.backends.cuda.matmul.allow_tf32 = saved[2]
+
+
+def decode(cuda_ops, planes, weights, biases, *, grid=None, points=None, pe_freqs=6, argmax=False, live=None,
+           autocast=None, tf32=False):
+    with cuda_state(autocast, tf32):
+        return cuda_ops.triplane_decode(*planes, weights, biases, points, None if grid is None else list(grid),
+                                        pe_freqs, argmax, live)
 
 
 def float64_case(hidden, classes, pe_freqs=2, seed=0):
@@ -51,6 +74,24 @@ def float64_case(hidden, classes, pe_freqs=2, seed=0):
                                            seed=seed, device="cpu")
     return [t.double() for t in planes], [w.double() for w in weights], [b.double() for b in biases]
 
+
+def assert_same(got, want, rtol=0.0, atol_scale=0.0):
+    """Equal tensors (nested in tuples / lists), within ``rtol`` and ``atol_scale`` times
+    each tensor's largest magnitude."""
+    if isinstance(want, (tuple, list)):
+        assert len(got) == len(want)
+        for g, w in zip(got, want):
+            assert_same(g, w, rtol, atol_scale)
+        return
+    assert got.dtype == want.dtype and got.shape == want.shape
+    if rtol == 0.0 and atol_scale == 0.0:
+        assert torch.equal(got, want)
+        return
+    scale = want.abs().max().item() if want.numel() else 0.0
+    torch.testing.assert_close(got, want, rtol=rtol, atol=atol_scale * scale + 1e-30, equal_nan=True)
+
+
+# ---------------------------------------------------------------- the emulator itself
 
 def test_emulator_barriers_and_votes_are_real(emu):
     x = torch.randn(3 * 128)
@@ -72,36 +113,38 @@ def test_emulator_fails_launches_that_break_cuda_rules(emu, name, message):
         emu.selftest(name, torch.zeros(128))
 
 
+# ---------------------------------------------------------------- triplane_decode forward
+
 @pytest.mark.parametrize("hidden, classes", WIDTHS)
 @pytest.mark.parametrize("mode", ["grid", "points"])
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_simt_forward_is_the_reference(emu, hidden, classes, mode, dtype, tol):
-    """float64 to its rounding; float32 (the wide tile's 128-bit loads) to float32's, against
-    the float64 reference."""
+def test_cuda_cores_forward_is_the_reference(cuda_ops, hidden, classes, mode, dtype, tol):
+    """float64 to its rounding; float32 with TF32 off (the SIMT kernel's wide tile of 128-bit
+    loads) to float32's, both against the float64 reference."""
     planes, weights, biases = float64_case(hidden, classes)
     points = points_pair(torch.float32, n=500, device="cpu")[1].double()
     query = {"grid": GRID} if mode == "grid" else {"points": points}
     want = reference.triplane_decode(*planes, weights, biases, pe_freqs=2, **query)
-    if dtype != torch.float64:
-        planes, weights, biases = ([t.to(dtype) for t in group] for group in (planes, weights, biases))
-        query = {"grid": GRID} if mode == "grid" else {"points": points.to(dtype)}
-    got = run(emu, planes, weights, biases, precision="cuda_cores", pe_freqs=2, **query)
+    planes, weights, biases = ([t.to(dtype) for t in group] for group in (planes, weights, biases))
+    query = {"grid": GRID} if mode == "grid" else {"points": points.to(dtype)}
+    got = decode(cuda_ops, planes, weights, biases, pe_freqs=2, **query)
     assert got.dtype == dtype
     torch.testing.assert_close(got.double(), want, rtol=tol, atol=tol * want.abs().max().item())
 
 
 @pytest.mark.parametrize("mode", ["grid", "points"])
-def test_simt_forward_float32_and_tf32(emu, mode):
-    """float32 on CUDA cores to float32's rounding; the tensor-core TF32 forward to TF32's
-    (the CUDA test ``test_triplane_decode_float32_follows_allow_tf32``'s tolerances)."""
-    planes, weights, biases = float64_case((256, 256), 18, pe_freqs=6)
-    query = {"grid": (10, 9, 4)} if mode == "grid" else {"points": points_pair(torch.float32, n=300, device="cpu")[1]}
-    exact = reference.triplane_decode(*planes, weights, biases,
-                                      **({"points": query["points"].double()} if mode == "points" else query))
+def test_float32_follows_allow_tf32(cuda_ops, mode):
+    """As ``test_cuda_lowp.test_triplane_decode_float32_follows_allow_tf32``: float32 to
+    float32's rounding, or with allow_tf32 on the tensor cores in TF32."""
+    _, (planes, weights, biases) = decoder(torch.float32, hidden=(256, 256), device="cpu")
+    points = points_pair(torch.float32, n=300, device="cpu")[1]
+    query = {"grid": (10, 9, 4)} if mode == "grid" else {"points": points}
+    exact = reference.triplane_decode(*(t.double() for t in planes), [w.double() for w in weights],
+                                      [b.double() for b in biases],
+                                      **({"points": points.double()} if mode == "points" else query))
     scale = exact.abs().max().item()
-    f32 = [[t.float() for t in group] for group in (planes, weights, biases)]
-    fp32 = run(emu, *f32, precision="cuda_cores", **query)
-    tf32 = run(emu, *f32, precision="tf32", **query)
+    fp32 = decode(cuda_ops, planes, weights, biases, **query)
+    tf32 = decode(cuda_ops, planes, weights, biases, tf32=True, **query)
     torch.testing.assert_close(fp32.double(), exact, rtol=1e-5, atol=1e-5 * scale)
     torch.testing.assert_close(tf32.double(), exact, rtol=5e-3, atol=5e-3 * scale)
     assert (tf32.double() - exact).abs().max().item() > 1e-5 * scale
@@ -109,51 +152,53 @@ def test_simt_forward_float32_and_tf32(emu, mode):
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 @pytest.mark.parametrize("hidden, classes", WIDTHS)
-def test_mma_forward_is_the_rounded_reference(emu, dtype, hidden, classes):
+def test_tensor_core_forward_is_the_rounded_reference(cuda_ops, dtype, hidden, classes):
     (planes, weights, biases), (planes32, weights32, biases32) = decoder(dtype, hidden=hidden, classes=classes,
                                                                          pe_freqs=2, device="cpu")
-    got = run(emu, planes, weights, biases, precision=PRECISION[dtype], grid=GRID, pe_freqs=2)
+    got = decode(cuda_ops, planes, weights, biases, grid=GRID, pe_freqs=2)
     want = rounded_decode(*planes32, weights32, biases32, dtype=dtype, grid=GRID, pe_freqs=2)
     assert_close_lowp(got, want, dtype)
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
-def test_mma_forward_of_float32_inputs_under_autocast(emu, dtype):
-    """float32 planes and points, MLP in the autocast dtype, float32 logits."""
-    _, (planes, weights, biases) = decoder(torch.float32, hidden=(64, 64), device="cpu")
-    points = points_pair(torch.float32, n=700, device="cpu")[1]
-    got = run(emu, planes, weights, biases, precision=PRECISION[dtype], points=points)
-    want = rounded_decode(*planes, weights, biases, dtype=dtype, points=points)
+@pytest.mark.parametrize("mode", ["grid", "points"])
+def test_autocast_computes_in_the_autocast_dtype(cuda_ops, dtype, mode):
+    """float32 inputs under CUDA autocast: float32 logits of an MLP run in the autocast dtype."""
+    _, (planes, weights, biases) = decoder(dtype, device="cpu")
+    query = {"points": points_pair(dtype, n=700, device="cpu")[1]} if mode == "points" else {"grid": (12, 9, 4)}
+    got = decode(cuda_ops, planes, weights, biases, autocast=dtype, **query)
+    want = rounded_decode(*planes, weights, biases, dtype=dtype, **query)
+    exact = reference.triplane_decode(*planes, weights, biases, **query)
     assert got.dtype == torch.float32
-    tol = {torch.float16: 2e-3, torch.bfloat16: 1.6e-2}[dtype]
-    torch.testing.assert_close(got, want, rtol=tol, atol=tol * want.abs().max().item())
+    scale = want.abs().max().item()
+    torch.testing.assert_close(got, want, rtol=TOLERANCE[dtype], atol=TOLERANCE[dtype] * scale)
+    assert (got - exact).abs().max().item() > 1e-4 * scale
 
 
-@pytest.mark.parametrize("precision, dtype", [("cuda_cores", torch.float32), ("cuda_cores", torch.float64),
-                                              ("tf32", torch.float32), ("half", torch.float16),
-                                              ("bfloat16", torch.bfloat16), ("bfloat16", torch.float32)])
+@pytest.mark.parametrize("state", [{}, {"tf32": True}, {"autocast": torch.float16}, {"autocast": torch.bfloat16}])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
 @pytest.mark.parametrize("hidden, classes", [((64, 64), 18), ((32, 128, 512), 18), ((130, 7), 3)])
-def test_labels_are_the_argmax_of_the_same_kernels_logits(emu, precision, dtype, hidden, classes):
+def test_labels_are_the_argmax_of_the_same_kernels_logits(cuda_ops, state, dtype, hidden, classes):
     (planes, weights, biases), _ = decoder(dtype, hidden=hidden, classes=classes, pe_freqs=2, device="cpu")
-    logits = run(emu, planes, weights, biases, precision=precision, grid=GRID, pe_freqs=2)
-    labels = run(emu, planes, weights, biases, precision=precision, grid=GRID, pe_freqs=2, argmax=True)
+    logits = decode(cuda_ops, planes, weights, biases, grid=GRID, pe_freqs=2, **state)
+    labels = decode(cuda_ops, planes, weights, biases, grid=GRID, pe_freqs=2, argmax=True, **state)
     assert labels.dtype == torch.uint8
     assert torch.equal(labels.long(), logits.argmax(-1))
 
 
-@pytest.mark.parametrize("precision, dtype", [("cuda_cores", torch.float32), ("bfloat16", torch.bfloat16)])
-def test_live_decodes_each_windows_first_points(emu, precision, dtype):
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_live_decodes_each_windows_first_points(cuda_ops, dtype):
     """Points past a window's live count get label 0; whole dead tiles are skipped."""
     (planes, weights, biases), _ = decoder(dtype, batch=3, device="cpu")
     points = points_pair(dtype, batch=3, n=600, device="cpu")[0]
-    full = run(emu, planes, weights, biases, precision=precision, points=points, argmax=True)
+    full = decode(cuda_ops, planes, weights, biases, points=points, argmax=True)
     live = torch.tensor([600, 0, 131])
-    got = run(emu, planes, weights, biases, precision=precision, points=points, argmax=True, live=live)
+    got = decode(cuda_ops, planes, weights, biases, points=points, argmax=True, live=live)
     keep = torch.arange(600) < live[:, None]
     assert torch.equal(got, torch.where(keep, full, torch.zeros_like(full)))
 
 
-def test_papers_decoder_size(emu):
+def test_papers_decoder_size(cuda_ops):
     """The papers' decoder (C_f = 64, 6 frequencies, hidden 256 x 4): the widest tilings of
     both kernels, over more than one block of points."""
     _, (planes, weights, biases) = decoder(torch.float32, channels=64, hidden=(256,) * 4, batch=1, device="cpu")
@@ -161,33 +206,148 @@ def test_papers_decoder_size(emu):
     exact = reference.triplane_decode(*(t.double() for t in planes), [w.double() for w in weights],
                                       [b.double() for b in biases], points=points.double())
     scale = exact.abs().max().item()
-    fp32 = run(emu, planes, weights, biases, precision="cuda_cores", points=points)
+    fp32 = decode(cuda_ops, planes, weights, biases, points=points)
     torch.testing.assert_close(fp32.double(), exact, rtol=1e-5, atol=1e-5 * scale)
-    got = run(emu, planes, weights, biases, precision="bfloat16", points=points)
+    got = decode(cuda_ops, planes, weights, biases, points=points, autocast=torch.bfloat16)
     want = rounded_decode(*planes, weights, biases, dtype=torch.bfloat16, points=points)
     torch.testing.assert_close(got, want, rtol=1.6e-2, atol=1.6e-2 * want.abs().max().item())
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_backward_kernels(emu, dtype):
-    """The backward's feature kernel is the reference's features, and its scatter kernel the
-    transpose of their plane lookups (the reference's autograd)."""
-    _, (planes, _, _) = decoder(torch.float32, batch=2, device="cpu")
-    planes = [p.to(dtype).requires_grad_() for p in planes]
-    points = points_pair(torch.float32, batch=2, n=400, device="cpu")[1].to(dtype)
-    want = reference.triplane_features(*planes, points, 6)
-    got = emu.features(*(p.detach() for p in planes), points, None, 6)
-    tol = 1e-12 if dtype == torch.float64 else 1e-5
-    torch.testing.assert_close(got, want.detach().reshape(got.shape), rtol=tol, atol=tol)
-    grad = torch.randn(want.shape, dtype=dtype)
-    want_grads = torch.autograd.grad(want, planes, grad)
-    got_grads = emu.scatter(*(p.detach() for p in planes), points, None, grad.reshape(-1, grad.shape[-1]))
-    for g, w in zip(got_grads, want_grads):
-        torch.testing.assert_close(g, w, rtol=tol, atol=tol)
-
-
-def test_empty_query_launches_nothing(emu):
+def test_empty_query_launches_nothing(cuda_ops):
     (planes, weights, biases), _ = decoder(torch.float32, device="cpu")
-    points = torch.zeros(2, 0, 3)
-    for precision in ("cuda_cores", "tf32", "bfloat16"):
-        assert run(emu, planes, weights, biases, precision=precision, points=points).shape == (2, 0, 18)
+    for state in ({}, {"tf32": True}, {"autocast": torch.bfloat16}):
+        assert decode(cuda_ops, planes, weights, biases, points=torch.zeros(2, 0, 3), **state).shape == (2, 0, 18)
+
+
+# ---------------------------------------------------------------- triplane_decode backward
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+@pytest.mark.parametrize("mode", ["grid", "points"])
+def test_backward_is_the_cpu_backward(cuda_ops, dtype, tol, mode):
+    """The chunked recomputation, its GEMMs and the scatter kernel against the CPU op, away from
+    the ReLU kinks (``kink_free_upstream``)."""
+    planes, weights, biases = ([t.to(dtype) for t in group] for group in float64_case((64, 32), 18, pe_freqs=6))
+    points = points_pair(torch.float32, n=800, device="cpu")[1].to(dtype)
+    query = [None, [24, 20, 8]] if mode == "grid" else [points, None]
+    preacts = []
+    rounded_decode(*planes, weights, biases, dtype=dtype, preacts=preacts,
+                   **({"grid": query[1]} if mode == "grid" else {"points": points}))
+    out = reference.triplane_decode(*planes, weights, biases, **({"grid": query[1]} if mode == "grid" else
+                                                                   {"points": points}))
+    upstream = kink_free_upstream(torch.randn(out.shape, dtype=dtype), preacts, KINK_MARGIN[torch.float32])
+    got = cuda_ops.triplane_decode_backward(upstream, *planes, weights, biases, *query, 6)
+    want = torch.ops.t3fast.triplane_decode_backward(upstream, *planes, weights, biases, *query, 6)
+    assert_same(got, want, rtol=tol, atol_scale=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("autocast", [False, True])
+def test_low_precision_backward_is_the_rounded_references(cuda_ops, dtype, autocast):
+    """The backward in the low precision (its inputs', or autocast's for float32 inputs) against
+    the gradients of the rounded reference, away from the ReLU kinks."""
+    (planes, weights, biases), ref = decoder(dtype, hidden=(64, 32), device="cpu")
+    planes32, weights32, biases32 = ref
+    preacts = []
+    out32 = rounded_decode(*planes32, weights32, biases32, dtype=dtype, preacts=preacts, grid=(24, 20, 8))
+    upstream32 = kink_free_upstream(torch.randn(out32.shape).to(dtype).float(), preacts, KINK_MARGIN[dtype])
+    params = [t.detach().requires_grad_() for t in (*planes32, *weights32, *biases32)]
+    want = torch.autograd.grad(rounded_decode(*params[:3], params[3:6], params[6:], dtype=dtype, grid=(24, 20, 8)),
+                               params, upstream32)
+    if autocast:
+        with cuda_state(autocast=dtype):
+            got = cuda_ops.triplane_decode_backward(upstream32, *planes32, weights32, biases32, None, [24, 20, 8], 6)
+        assert got[0].dtype == torch.float32
+    else:
+        got = cuda_ops.triplane_decode_backward(upstream32.to(dtype), *planes, weights, biases, None, [24, 20, 8], 6)
+    flat = [*got[:3], *got[3], *got[4]]
+    for a, e in zip(flat, want):
+        tol = TOLERANCE[dtype]
+        torch.testing.assert_close(a.float(), e, rtol=tol, atol=tol * e.abs().max().item() + 1e-6)
+
+
+# ---------------------------------------------------------------- the other operators
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("shape", [(2, 3, 40, 30, 16), (1, 3, 7, 5, 300), (3, 2, 1, 9, 4), (1, 2, 70, 3, 2)])
+def test_axis_pool(cuda_ops, dtype, shape):
+    """Forward (one pass, and the chunked plan with its workspace for long x) and backward."""
+    volume = torch.randn(*shape).to(dtype)
+    got = cuda_ops.axis_pool(volume)
+    if dtype in TOLERANCE:
+        want = reference.axis_pool(volume.float())
+        for a, e in zip(got, want):
+            assert_close_lowp(a, e, dtype)
+    else:
+        assert_same(got, torch.ops.t3fast.axis_pool(volume), rtol=1e-6, atol_scale=1e-6)
+    grads = [torch.randn(t.shape).to(dtype) for t in got]
+    want = torch.ops.t3fast.axis_pool_backward(*(g.float() for g in grads)).to(dtype)
+    tol = TOLERANCE.get(dtype, 1e-6)  # the low precisions: one rounding of the sum
+    assert_same(cuda_ops.axis_pool_backward(*grads), want, rtol=tol, atol_scale=tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+@pytest.mark.parametrize(("c_out", "c_in"), [(8, 8), (16, 40), (3, 1), (64, 64)])
+@pytest.mark.parametrize("with_bias", [True, False])
+def test_delta_fuse(cuda_ops, dtype, c_out, c_in, with_bias):
+    g = torch.Generator().manual_seed(0)
+    low = [lowp_pair(t, dtype, "cpu") for t in (torch.randn(2, c_out, 37, 29, generator=g),
+                                                torch.randn(2, c_in, 37, 29, generator=g),
+                                                torch.randn(c_out, c_in, generator=g) / c_in**0.5,
+                                                torch.randn(c_out, generator=g))]
+    (delta, delta32), (prev, prev32), (weight, weight32), (bias, bias32) = low
+    got = cuda_ops.delta_fuse(delta, prev, weight, bias if with_bias else None)
+    want = torch.ops.t3fast.delta_fuse(delta32, prev32, weight32, bias32 if with_bias else None)
+    tol = TOLERANCE.get(dtype, 1e-5)
+    assert_same(got.float(), want, rtol=tol, atol_scale=tol)
+    grad = torch.randn(want.shape, generator=g).to(dtype)
+    got = cuda_ops.delta_fuse_backward(grad, prev, weight)
+    want = torch.ops.t3fast.delta_fuse_backward(grad.float(), prev32, weight32)
+    for a, e in zip(got, want):
+        assert_same(a.float(), e, rtol=tol, atol_scale=tol)
+
+
+@pytest.mark.parametrize("label_dtype", [torch.uint8, torch.int32, torch.int64])
+@pytest.mark.parametrize("shape, classes, channels", [((2, 12, 10, 6), 18, 8), ((1, 5, 1, 9), 3, 13),
+                                                      ((1, 1, 1, 1), 2, 1)])
+def test_label_conv3d(cuda_ops, label_dtype, shape, classes, channels):
+    g = torch.Generator().manual_seed(0)
+    labels = torch.randint(0, classes, shape, generator=g).to(label_dtype)
+    table = torch.randn(27, classes, channels, generator=g)
+    assert_same(cuda_ops.label_conv3d(labels, table), torch.ops.t3fast.label_conv3d(labels, table),
+                 rtol=1e-6, atol_scale=1e-6)
+    grad = torch.randn(shape[0], channels, *shape[1:], generator=g)
+    assert_same(cuda_ops.label_conv3d_backward(grad, labels, classes),
+                torch.ops.t3fast.label_conv3d_backward(grad, labels, classes), rtol=1e-5, atol_scale=1e-5)
+
+
+@pytest.mark.parametrize("shape, density", [((2, 60, 50), 0.05), ((2, 17, 31), 0.5), ((4, 9, 5), 0.8),
+                                            ((1, 1, 40), 0.6), ((1, 40, 1), 0.6)])
+def test_bev_components(cuda_ops, shape, density):
+    mask = bev_cases.random_masks(shape, density)
+    assert_same(cuda_ops.bev_components(mask), torch.ops.t3fast.bev_components(mask))
+
+
+def test_bev_components_of_a_long_spiral(cuda_ops):
+    mask = bev_cases.spiral(41)[None]
+    labels, count = cuda_ops.bev_components(mask)
+    assert count.tolist() == [1] and torch.equal(labels, torch.ops.t3fast.bev_components(mask)[0])
+
+
+@pytest.mark.parametrize("batch, count, shape, reach", [(2, 1, (60, 50, 16), 26), (2, 30, (60, 50, 16), 26),
+                                                        (2, 25, (17, 9, 5), 3), (1, 7, (1, 1, 1), 0)])
+def test_draw_boxes(cuda_ops, batch, count, shape, reach):
+    volume, boxes, levels, labels = draw_cases.make(batch, count, shape)
+    args = (boxes, levels, labels, [-10.0, -10.0], draw_cases.VOXEL, reach)
+    assert_same(cuda_ops.draw_boxes(volume, *args), torch.ops.t3fast.draw_boxes(volume, *args))
+
+
+@pytest.mark.parametrize("iters, near", [(0, 1), (3, 1), (3, 2)])
+def test_box_fit(cuda_ops, iters, near):
+    """The fit's samples, Adam steps and IoU against the CPU op (float32 samples: within
+    float32's rounding of the steps)."""
+    args = box_fit_cases.make(batch=2, agents=4, frames=3, shape=(30, 32))
+    got = box_fit_cases.fit(args, iters, near=near, fn=cuda_ops.box_fit)
+    want = box_fit_cases.fit(args, iters, near=near, fn=torch.ops.t3fast.box_fit)
+    for a, e in zip(got, want):
+        torch.testing.assert_close(a, e, rtol=1e-6, atol=1e-6, equal_nan=True)
+    assert not math.isnan(got[1][0, 2].item())

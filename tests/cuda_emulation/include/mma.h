@@ -122,11 +122,18 @@ inline void mma_sync(fragment<accumulator, M, N, K, float>& d,
                      const fragment<matrix_a, M, N, K, T, LA>& a,
                      const fragment<matrix_b, M, N, K, T, LB>& b,
                      const fragment<accumulator, M, N, K, float>& c) {
+  float fa[M][K], fb[K][N];
+  for (int r = 0; r < M; ++r) {
+    for (int k = 0; k < K; ++k) fa[r][k] = operand<T>(a.at(r, k));
+  }
+  for (int k = 0; k < K; ++k) {
+    for (int n = 0; n < N; ++n) fb[k][n] = operand<T>(b.at(k, n));
+  }
   fragment<accumulator, M, N, K, float> out;
   for (int r = 0; r < M; ++r) {
     for (int n = 0; n < N; ++n) {
       float s = c.at(r, n);
-      for (int k = 0; k < K; ++k) s += operand<T>(a.at(r, k)) * operand<T>(b.at(k, n));
+      for (int k = 0; k < K; ++k) s += fa[r][k] * fb[k][n];
       out.at(r, n) = s;
     }
   }

@@ -45,8 +45,9 @@ struct Fiber {
   dim3 thread_idx;
   unsigned linear = 0;  // x fastest, as CUDA numbers the threads of a block
   Wait wait = Wait::kNone;
-  int vote = 0;    // this thread's operand of a voting barrier
-  int result = 0;  // the vote's result, once the barrier opens
+  int vote = 0;         // this thread's operand of a voting barrier
+  int result = 0;       // the vote's result, once the barrier opens
+  uint64_t posted = 0;  // this lane's value in a warp exchange (shuffle, ballot)
 };
 
 struct BlockState {
@@ -255,43 +256,3 @@ auto launch(Kernel* kernel, dim3 grid, dim3 block, size_t smem = 0, void* stream
 }
 
 }  // namespace t3emu
-
-// ---- what device code sees
-
-#define threadIdx (::t3emu::thread_idx())
-#define blockIdx (::t3emu::block_idx())
-#define blockDim (::t3emu::block_dim())
-#define gridDim (::t3emu::grid_dim())
-
-#define __global__
-#define __device__
-#define __host__
-#define __forceinline__ inline
-#define __launch_bounds__(...)
-#define __grid_constant__
-#define __align__(n) alignas(n)
-#define __shared__ static
-
-inline void __syncthreads() { ::t3emu::wait_at(::t3emu::Wait::kBlock, 0); }
-inline int __syncthreads_or(int v) {
-  ::t3emu::wait_at(::t3emu::Wait::kBlock, v != 0);
-  return ::t3emu::block_state()->current->result;
-}
-inline void __syncwarp(unsigned mask = 0xffffffffu) {
-  if (mask != 0xffffffffu) ::t3emu::emu_fail("__syncwarp with a partial mask is not emulated");
-  ::t3emu::wait_at(::t3emu::Wait::kWarp, 0);
-}
-[[noreturn]] inline void __trap() { ::t3emu::emu_fail("__trap() reached"); }
-
-// Blocks run one at a time on one host thread: an atomic is a plain read-modify-write.
-template <typename T>
-inline T atomicAdd(T* address, T v) {
-  const T old = *address;
-  *address = old + v;
-  return old;
-}
-
-inline int min(int a, int b) { return a < b ? a : b; }
-inline int max(int a, int b) { return a > b ? a : b; }
-inline int64_t min(int64_t a, int64_t b) { return a < b ? a : b; }
-inline int64_t max(int64_t a, int64_t b) { return a > b ? a : b; }

@@ -22,9 +22,13 @@ from __future__ import annotations
 import hashlib
 import re
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
 from types import ModuleType
+
+import torch
 
 HERE = Path(__file__).resolve().parent
 CSRC = HERE.parents[1] / "csrc"
@@ -104,3 +108,19 @@ def load() -> ModuleType:
     return load_extension(name=f"t3fast_cuda_emulation_{digest}", sources=sources, build_directory=str(build),
                           extra_include_paths=[str(build), str(HERE / "include"), str(CSRC)],
                           extra_cflags=["-O2", "-ffp-contract=off"], verbose=False)
+
+
+@contextmanager
+def emulated_ops() -> Iterator[None]:
+    """Inside, t3fast's public operators (``t3fast.ops.*``, which the models call) run the
+    emulated CUDA operators on CPU tensors. Combined with :func:`t3fast.host_syncs.sync_free`,
+    a model runs as it does on a GPU."""
+    import t3fast.ops as public
+
+    load()
+    saved = public.ops
+    public.ops = torch.ops.t3fast_emu
+    try:
+        yield
+    finally:
+        public.ops = saved

@@ -37,4 +37,9 @@ torch::Tensor selftest(const std::string& name, const torch::Tensor& in) {
 
 }  // namespace
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("selftest", &selftest); }
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("selftest", &selftest);
+  // The compute capability (major) the emulated device reports: below 8 the glue takes the
+  // CUDA-core kernels for every dtype, as on a GPU without bfloat16 tensor cores.
+  m.def("set_compute_capability", [](int major) { t3emu::compute_capability_major() = major; });
+}

@@ -175,6 +175,23 @@ def test_autocast_computes_in_the_autocast_dtype(cuda_ops, dtype, mode):
     assert (got - exact).abs().max().item() > 1e-4 * scale
 
 
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_devices_without_tensor_cores_decode_low_precision_on_cuda_cores(emu, cuda_ops, dtype):
+    """Below compute capability 8 the glue takes the SIMT kernel for float16 / bfloat16 too: the
+    wide tile reads its low-precision weights and accumulates in float32."""
+    (planes, weights, biases), (planes32, weights32, biases32) = decoder(dtype, hidden=(256,), device="cpu")
+    emu.set_compute_capability(7)
+    try:
+        got = decode(cuda_ops, planes, weights, biases, grid=GRID)
+    finally:
+        emu.set_compute_capability(9)
+    want = reference.triplane_decode(*planes32, weights32, biases32, grid=GRID)
+    assert_close_lowp(got, want, dtype)
+    # not the tensor-core path, which rounds every hidden layer to the low precision
+    mma = decode(cuda_ops, planes, weights, biases, grid=GRID)
+    assert not torch.equal(got, mma)
+
+
 @pytest.mark.parametrize("state", [{}, {"tf32": True}, {"autocast": torch.float16}, {"autocast": torch.bfloat16}])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
 @pytest.mark.parametrize("hidden, classes", [((64, 64), 18), ((32, 128, 512), 18), ((130, 7), 3)])

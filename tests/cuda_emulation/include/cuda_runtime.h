@@ -27,8 +27,8 @@ inline cudaError_t cudaGetDevice(int* device) {
   return cudaSuccess;
 }
 
-// The device the emulator stands for: an H100 (sm_90, 132 SMs, 227 KB of shared memory per
-// block when opted in).
+// The device the emulator stands for: an H100 (132 SMs, 227 KB of shared memory per block
+// when opted in), of compute capability 9.0 unless set otherwise.
 inline cudaError_t cudaDeviceGetAttribute(int* value, cudaDeviceAttr attr, int device) {
   (void)device;
   switch (attr) {
@@ -39,7 +39,7 @@ inline cudaError_t cudaDeviceGetAttribute(int* value, cudaDeviceAttr attr, int d
       *value = ::t3emu::kSms;
       return cudaSuccess;
     case cudaDevAttrComputeCapabilityMajor:
-      *value = 9;
+      *value = ::t3emu::compute_capability_major();
       return cudaSuccess;
   }
   return cudaErrorInvalidValue;

@@ -178,6 +178,12 @@ inline std::map<const void*, int>& smem_limits() {
   return limits;
 }
 
+// The compute capability's major version the device reports (an H100's by default).
+inline int& compute_capability_major() {
+  static int major = 9;
+  return major;
+}
+
 constexpr int kDefaultSmem = 48 * 1024;
 constexpr int kOptinSmem = 227 * 1024;  // an H100's opt-in limit per block
 constexpr int kSms = 132;

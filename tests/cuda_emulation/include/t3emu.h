@@ -111,13 +111,14 @@ constexpr unsigned char kGuard = 0xA5;
 // Runs one block of `body` to completion; false (and launch_error set) when it failed.
 inline bool run_block(BlockState& b) {
   const unsigned threads = b.block_dim.x * b.block_dim.y * b.block_dim.z;
-  b.fibers = std::vector<Fiber>(threads);
+  if (b.fibers.size() != threads) b.fibers = std::vector<Fiber>(threads);  // stacks kept across blocks
   for (unsigned t = 0; t < threads; ++t) {
     Fiber& f = b.fibers[t];
     f.linear = t;
     f.thread_idx = dim3(t % b.block_dim.x, t / b.block_dim.x % b.block_dim.y,
                         t / (b.block_dim.x * b.block_dim.y));
-    f.stack.reset(new char[kStackBytes]);
+    f.wait = Wait::kNone;
+    if (!f.stack) f.stack.reset(new char[kStackBytes]);
     getcontext(&f.ctx);
     f.ctx.uc_stack.ss_sp = f.stack.get();
     f.ctx.uc_stack.ss_size = kStackBytes;

@@ -22,15 +22,16 @@
 // widths up to 128, 64 up to 256, 32 up to 512 (kTriplaneMaxWidth); the launcher takes the
 // largest P that covers the widest layer and whose shared memory fits the device. Narrow
 // layers (e.g. the class layer) use a thinner register tile (TP = 4, 2, 1 points per thread)
-// so that most threads still have work; their weight chunk is `wsm` [n_out][8 + 1] (odd row:
-// conflict-free), read one value at a time. The wide layers (TP = 8, the hidden layers of the
-// papers' decoder) in float use mlp_layer_wide: every shared-memory read is a 128-bit load
-// without bank conflicts (4 loads per 64 FMAs; the narrow tile's 16 loads per 64 FMAs left
-// the SIMT pipes waiting on shared memory), and the weights are double-buffered: the next
-// chunk is fetched into registers while the current one is multiplied, one barrier per chunk.
-// Shared memory per block is ((P + 4) x padded widest width + weight buffer + 3 P) x 4 + 8 P
-// bytes, the weight buffer max(rows x 9, 2 x 8 x (rows + 4)) values for the widest pass of
-// rows outputs, e.g. about 87 KB for hidden width 256 (P = 64): two blocks per SM on H100
+// so that most threads still have work; each thread's 8 outputs are consecutive and the
+// weight chunk is stored transposed, `wsm` [8][outputs + 4], so its weights are two 128-bit
+// loads. The wide layers (TP = 8, the hidden layers of the papers' decoder) in float use
+// mlp_layer_wide: every shared-memory read is a 128-bit load without bank conflicts (4 loads
+// per 64 FMAs; one value per load, 16 loads per 64 FMAs, left the SIMT pipes waiting on shared
+// memory), and the weights are double-buffered: the next chunk is fetched into registers
+// while the current one is multiplied, one barrier per chunk.
+// Shared memory per block is ((P + 4) x padded widest width + 2 x 8 x (rows + 4) + 3 P) x 4
+// + 8 P bytes for a widest pass of rows outputs, e.g. about 87 KB for hidden width 256
+// (P = 64): two blocks per SM on H100
 // (the kernel is built for at most 128 registers per thread for that reason). The weights are
 // re-read from L2 once per tile and layer. Tensor cores are not used.
 //
@@ -90,19 +91,18 @@ __host__ __device__ inline int mlp_weight_rows(int P, const int* widths, int num
   return rows;
 }
 
-// Values of the weight buffer: one chunk [rows][kChunk + 1] for the narrow tiles, or two
-// chunks [kChunk][rows + 4] for the wide tile (double-buffered).
-__host__ __device__ inline int weight_buffer_values(int rows) {
-  const int narrow = rows * (kChunk + 1);
-  const int wide = 2 * kChunk * (rows + 4);
-  return narrow > wide ? narrow : wide;
-}
+// Values of the weight buffer for the widest pass of `rows` outputs: two chunks
+// [kChunk][rows + 4] (the wide tile double-buffers; a narrow tile uses one).
+__host__ __device__ inline int weight_buffer_values(int rows) { return 2 * kChunk * (rows + 4); }
 
 // One linear layer of the fused kernel on the activations of the tile, in place:
 // act[p, o] <- act[p, :in] . weight[o, :in] + bias[o] (ReLU if relu) for o < out, and 0 for
 // out <= o < round_up(out, chunk) so that the next layer's last chunk reads zeros.
-// Thread (pg, og) owns points pg + (P / TP) * i (i < TP) and outputs og + groups_o * j
-// (j < kTileOut). Starts and ends with a barrier, so act may be rewritten freely around it.
+// Thread (pg, og) owns points pg + (P / TP) * i (i < TP) and the 8 consecutive outputs
+// 8 og + j (j < kTileOut): the weight chunk is stored transposed, wsm [kChunk][outputs + 4]
+// (the 4 extra columns make the transposing stores conflict-free), so a thread reads its 8
+// weights with two 128-bit loads in float (the class layer: 3 loads per 8 FMAs instead of 9).
+// Starts and ends with a barrier, so act may be rewritten freely around it.
 template <int TP, int P, typename T, typename A>
 __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
                                           const T* __restrict__ bias, int in, int out,
@@ -110,14 +110,16 @@ __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
   constexpr int kRow = act_row<P>();
   constexpr int kGroupsP = P / TP;
   constexpr int kGroupsO = kThreads / kGroupsP;
+  constexpr int kWRow = outputs_covered(P, TP) + 4;
   static_assert(kGroupsP * TP == P && kGroupsO * kGroupsP == kThreads, "bad register tile");
   const int og = threadIdx.x % kGroupsO;
   const int pg = threadIdx.x / kGroupsO;
+  const int o0 = og * kTileOut;
 
   A acc[TP][kTileOut];
 #pragma unroll
   for (int j = 0; j < kTileOut; ++j) {
-    const int o = og + kGroupsO * j;
+    const int o = o0 + j;
     const A b = o < out ? to_acc(bias[o]) : A(0);
 #pragma unroll
     for (int i = 0; i < TP; ++i) acc[i][j] = b;
@@ -125,23 +127,31 @@ __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
 
   for (int k0 = 0; k0 < in; k0 += kChunk) {
     __syncthreads();  // act is complete, and nobody reads the previous weight chunk any more
-    // wsm[o][kk] = weight[o, k0 + kk]; rows >= out are never loaded (their results are dropped)
+    // wsm[kk][o] = weight[o, k0 + kk]; rows >= out are never loaded (their results are dropped)
     for (int idx = threadIdx.x; idx < out * kChunk; idx += kThreads) {
       const int o = idx / kChunk;
       const int kk = idx - o * kChunk;
       const int k = k0 + kk;
-      wsm[o * (kChunk + 1) + kk] =
-          k < in ? to_acc(weight[static_cast<int64_t>(o) * in + k]) : A(0);
+      wsm[kk * kWRow + o] = k < in ? to_acc(weight[static_cast<int64_t>(o) * in + k]) : A(0);
     }
     __syncthreads();
-#pragma unroll
+// half unrolled: a full unroll hoists every load and spills at 128 registers
+#pragma unroll 4
     for (int kk = 0; kk < kChunk; ++kk) {
       A a[TP];
       A w[kTileOut];
 #pragma unroll
       for (int i = 0; i < TP; ++i) a[i] = act[(k0 + kk) * kRow + pg + kGroupsP * i];
+      const A* w_row = wsm + kk * kWRow + o0;
+      if constexpr (std::is_same_v<A, float>) {
+        const float4 lo = *reinterpret_cast<const float4*>(w_row);
+        const float4 hi = *reinterpret_cast<const float4*>(w_row + 4);
+        w[0] = lo.x, w[1] = lo.y, w[2] = lo.z, w[3] = lo.w;
+        w[4] = hi.x, w[5] = hi.y, w[6] = hi.z, w[7] = hi.w;
+      } else {
 #pragma unroll
-      for (int j = 0; j < kTileOut; ++j) w[j] = wsm[(og + kGroupsO * j) * (kChunk + 1) + kk];
+        for (int j = 0; j < kTileOut; ++j) w[j] = w_row[j];
+      }
 #pragma unroll
       for (int i = 0; i < TP; ++i) {
 #pragma unroll
@@ -154,7 +164,7 @@ __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
   const int out_pad = round_up(out, kChunk);
 #pragma unroll
   for (int j = 0; j < kTileOut; ++j) {
-    const int o = og + kGroupsO * j;
+    const int o = o0 + j;
     if (o < out_pad) {
 #pragma unroll
       for (int i = 0; i < TP; ++i) {

@@ -24,11 +24,11 @@
 // layers (e.g. the class layer) use a thinner register tile (TP = 4, 2, 1 points per thread)
 // so that most threads still have work; each thread's 8 outputs are consecutive and the
 // weight chunk is stored transposed, `wsm` [8][outputs + 4], so its weights are two 128-bit
-// loads. The wide layers (TP = 8, the hidden layers of the papers' decoder) in float use
+// loads. The wide layers (TP = 8 or 4: the hidden layers of the decoders) in float use
 // mlp_layer_wide: every shared-memory read is a 128-bit load without bank conflicts (4 loads
-// per 64 FMAs; one value per load, 16 loads per 64 FMAs, left the SIMT pipes waiting on shared
-// memory), and the weights are double-buffered: the next chunk is fetched into registers
-// while the current one is multiplied, one barrier per chunk.
+// per 64 FMAs at TP = 8; one value per load, 16 loads per 64 FMAs, left the SIMT pipes
+// waiting on shared memory), and the weights are double-buffered: the next chunk is fetched
+// into registers while the current one is multiplied, one barrier per chunk.
 // Shared memory per block is ((P + 4) x padded widest width + 2 x 8 x (rows + 4) + 3 P) x 4
 // + 8 P bytes for a widest pass of rows outputs, e.g. about 87 KB for hidden width 256
 // (P = 64): two blocks per SM on H100
@@ -177,41 +177,42 @@ __device__ __forceinline__ void mlp_layer(const T* __restrict__ weight,
   __syncthreads();
 }
 
-// The widest register tile (8 points x 8 outputs per thread) in float: the layer of
-// mlp_layer<kMaxTileRows, P> with every shared-memory read a 128-bit load. A warp covers 32
-// points x 64 outputs as 4 x 8 threads: a thread owns 8 consecutive points and two runs of 4
-// outputs 32 apart, so a warp's loads of activations (4 distinct 16-byte runs) and of weights
-// (two 128-byte rows) are free of bank conflicts: 4 loads per 64 FMAs instead of 16. The
-// weights stream through two chunk buffers wbuf [2][kChunk][rows + 4] (the 4 extra columns
-// make the transposing stores conflict-free): the next chunk is fetched from global memory
-// into registers while the current one is used, stored after it, and one barrier per chunk
-// separates the two.
-template <typename T, int P>
+// The wide register tiles (TP = 4 or 8 points x 8 outputs per thread) in float: the layer
+// of mlp_layer<TP, P> with every shared-memory read a 128-bit load. A warp covers 4 TP
+// points x 64 outputs as 4 x 8 threads: a thread owns TP consecutive points and two runs of 4
+// outputs 32 apart, so a warp's loads of activations (4 distinct runs of 16 bytes) and of
+// weights (two 128-byte rows) are free of bank conflicts: 2 + TP / 4 loads per 8 TP FMAs
+// instead of 8 + TP. The weights stream through two chunk buffers wbuf [2][kChunk][rows + 4]
+// (the 4 extra columns make the transposing stores conflict-free): the next chunk is fetched
+// from global memory into registers while the current one is used, stored after it, and one
+// barrier per chunk separates the two.
+template <int TP, int P, typename T>
 __device__ __forceinline__ void mlp_layer_wide(const T* __restrict__ weight,
                                                const T* __restrict__ bias, int in, int out,
                                                bool relu, float* act, float* wbuf) {
+  static_assert(TP == 4 || TP == 8, "the wide tiles hold 4 or 8 points per thread");
   constexpr int kRow = act_row<P>();
-  constexpr int kWarpPoints = 32;
+  constexpr int kWarpPoints = 4 * TP;
   constexpr int kWarpOutputs = 64;
   constexpr int kWarpRows = P / kWarpPoints;
   constexpr int kWarpCols = kThreads / 32 / kWarpRows;
   constexpr int kRows = kWarpCols * kWarpOutputs;  // outputs covered
   constexpr int kWRow = kRows + 4;
   constexpr int kLoads = kRows * kChunk / kThreads;  // weight values each thread fetches
-  static_assert(kRows == outputs_covered(P, kMaxTileRows) && kLoads * kThreads == kRows * kChunk,
+  static_assert(kRows == outputs_covered(P, TP) && kLoads * kThreads == kRows * kChunk,
                 "bad wide tile");
   const int warp = threadIdx.x / 32;
   const int lane = threadIdx.x % 32;
-  const int p0 = (warp / kWarpCols) * kWarpPoints + (lane / 8) * 8;
+  const int p0 = (warp / kWarpCols) * kWarpPoints + (lane / 8) * TP;
   const int o0 = (warp % kWarpCols) * kWarpOutputs + (lane % 8) * 4;
 
-  float acc[kMaxTileRows][kTileOut];  // [point p0 + i][output o0 + j (+ 28 for j >= 4)]
+  float acc[TP][kTileOut];  // [point p0 + i][output o0 + j (+ 28 for j >= 4)]
 #pragma unroll
   for (int j = 0; j < kTileOut; ++j) {
     const int o = o0 + j + (j >= 4 ? 28 : 0);
     const float b = o < out ? to_acc(bias[o]) : 0.f;
 #pragma unroll
-    for (int i = 0; i < kMaxTileRows; ++i) acc[i][j] = b;
+    for (int i = 0; i < TP; ++i) acc[i][j] = b;
   }
 
   // Thread t fetches input t % kChunk of the weight rows t / kChunk + kRowStep * l: with
@@ -247,14 +248,17 @@ __device__ __forceinline__ void mlp_layer_wide(const T* __restrict__ weight,
     for (int kk = 0; kk < kChunk; ++kk) {
       const float* a_row = act + (c * kChunk + kk) * kRow + p0;
       const float* w_row = chunk + kk * kWRow + o0;
-      const float4 a_lo = *reinterpret_cast<const float4*>(a_row);
-      const float4 a_hi = *reinterpret_cast<const float4*>(a_row + 4);
+      float a[TP];
+#pragma unroll
+      for (int q = 0; q < TP / 4; ++q) {
+        const float4 v = *reinterpret_cast<const float4*>(a_row + 4 * q);
+        a[4 * q] = v.x, a[4 * q + 1] = v.y, a[4 * q + 2] = v.z, a[4 * q + 3] = v.w;
+      }
       const float4 w_lo = *reinterpret_cast<const float4*>(w_row);
       const float4 w_hi = *reinterpret_cast<const float4*>(w_row + 32);
-      const float a[kMaxTileRows] = {a_lo.x, a_lo.y, a_lo.z, a_lo.w, a_hi.x, a_hi.y, a_hi.z, a_hi.w};
       const float w[kTileOut] = {w_lo.x, w_lo.y, w_lo.z, w_lo.w, w_hi.x, w_hi.y, w_hi.z, w_hi.w};
 #pragma unroll
-      for (int i = 0; i < kMaxTileRows; ++i) {
+      for (int i = 0; i < TP; ++i) {
 #pragma unroll
         for (int j = 0; j < kTileOut; ++j) acc[i][j] += a[i] * w[j];
       }
@@ -270,7 +274,7 @@ __device__ __forceinline__ void mlp_layer_wide(const T* __restrict__ weight,
     const int o = o0 + j + (j >= 4 ? 28 : 0);
     if (o < out_pad) {
 #pragma unroll
-      for (int i = 0; i < kMaxTileRows; ++i) {
+      for (int i = 0; i < TP; ++i) {
         float v = acc[i][j];
         if (relu && v < 0.f) v = 0.f;  // keeps NaN, like torch.relu
         act[o * kRow + p0 + i] = o < out ? v : 0.f;
@@ -322,11 +326,15 @@ __global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
         mlp_layer<2, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
         break;
       case 4:
-        mlp_layer<4, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        if constexpr (std::is_same_v<A, float>) {
+          mlp_layer_wide<4, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        } else {
+          mlp_layer<4, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+        }
         break;
       default:
         if constexpr (std::is_same_v<A, float>) {
-          mlp_layer_wide<T, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
+          mlp_layer_wide<kMaxTileRows, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
         } else {
           mlp_layer<kMaxTileRows, P>(mlp.weight[l], mlp.bias[l], in, out, relu, act, wsm);
         }

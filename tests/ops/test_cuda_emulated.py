@@ -26,10 +26,11 @@ from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, assert_close_lowp, 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
                                 reason="needs a host C++ compiler")
 
-# The tiling cases: every point tile of the SIMT kernel (128, 64, 32 points) and every warp
-# grid of the tensor-core kernel, odd widths, one class, many layers.
+# The tiling cases: every point tile of the SIMT kernel (128, 64, 32 points) with each of its
+# register tiles (1, 2, 4, 8 points per thread), every warp grid of the tensor-core kernel,
+# odd widths, one class, many layers.
 WIDTHS = [((64, 64), 18), ((256,), 18), ((32, 128, 512), 18), ((17,), 1), ((130, 7), 3), ((48,) * 9, 5),
-          ((40,), 40), ((90,), 70)]
+          ((40,), 40), ((90,), 70), ((200, 100), 18), ((300, 200), 18)]
 GRID = (9, 7, 5)
 
 

@@ -9,9 +9,9 @@
 // launch, as does any misuse the emulator checks (see emu_fail). Blocks share nothing but
 // global memory, so running them in order shows the same results as a GPU gives for
 // race-free kernels. Shared memory: `__shared__` variables are function statics (one copy,
-// shared by the block's fibers; blocks run one at a time), the dynamic buffer is a fresh
-// allocation of exactly the launch's size per block, followed by guard bytes that are
-// checked after the block.
+// shared by the block's fibers; blocks run one at a time); the dynamic buffer has exactly the
+// launch's size, is filled with garbage before every block (a kernel must not read what it
+// did not write) and is followed by guard bytes that are checked after the block.
 #pragma once
 
 #include <ucontext.h>

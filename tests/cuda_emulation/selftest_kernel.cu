@@ -19,6 +19,16 @@ __global__ void reverse_kernel(const float* in, float* out) {
   out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
 }
 
+// The same without the barrier: a race, which the emulator exposes every time (a thread runs
+// until it returns, so thread 0 reads slots nobody has written yet).
+__global__ void racy_reverse_kernel(const float* in, float* out) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  const int t = threadIdx.x;
+  buf[t] = in[blockIdx.x * kThreads + t];
+  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
+}
+
 // out[block] = 1 when any input of the block is positive (__syncthreads_or), written by
 // thread 0; every thread also counts how many of its warp's lanes passed __syncwarp.
 __global__ void vote_kernel(const float* in, float* out) {
@@ -62,6 +72,8 @@ __global__ void misaligned_kernel() {
 cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks) {
   if (name == "reverse") {
     reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  } else if (name == "racy_reverse") {
+    racy_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
   } else if (name == "vote") {
     vote_kernel<<<blocks, kThreads>>>(in, out);
   } else if (name == "divergent") {

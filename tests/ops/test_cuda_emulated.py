@@ -97,6 +97,8 @@ def assert_same(got, want, rtol=0.0, atol_scale=0.0):
 def test_emulator_barriers_and_votes_are_real(emu):
     x = torch.randn(3 * 128)
     assert torch.equal(emu.selftest("reverse", x), x.view(3, 128).flip(1).reshape(-1))
+    # without the barrier the early threads read shared memory nobody wrote yet
+    assert not torch.equal(emu.selftest("racy_reverse", x), x.view(3, 128).flip(1).reshape(-1))
     votes = torch.full((2 * 128,), -1.0)
     votes[200] = 1.0
     # block 0 has no positive input, block 1 one; all 32 lanes of warp 0 passed __syncwarp

@@ -31,8 +31,8 @@
 // into registers while the current one is multiplied, one barrier per chunk.
 // Shared memory per block is ((P + 4) x padded widest width + 2 x 8 x (rows + 4) + 3 P) x 4
 // + 8 P bytes for a widest pass of rows outputs, e.g. about 87 KB for hidden width 256
-// (P = 64): two blocks per SM on H100
-// (the kernel is built for at most 128 registers per thread for that reason). The weights are
+// (P = 64): two blocks per SM on H100 (the kernel is built for at most 128 registers per
+// thread there for that reason; see fused_min_blocks). The weights are
 // re-read from L2 once per tile and layer. Tensor cores are not used.
 //
 // Backward: see triplane_decode.cpp (chunked recomputation with cuBLAS GEMMs); the kernels
@@ -284,8 +284,22 @@ __device__ __forceinline__ void mlp_layer_wide(const T* __restrict__ weight,
   __syncthreads();
 }
 
+// Blocks per SM the fused kernel is built for (each thread gets 64K / (256 x blocks) registers
+// at most): two where two blocks' shared memory fits an SM (every point tile on sm_90's
+// 228 KB; only the 128-point tile, about 77 KB, on sm_80's 164 KB), else one, which lifts the
+// cap of 128 registers that made the 64- and 32-point tiles spill on sm_80.
 template <typename T, int P>
-__global__ void __launch_bounds__(kThreads, sizeof(acc_t<T>) == 8 ? 1 : 2)
+__host__ __device__ constexpr int fused_min_blocks() {
+  if (sizeof(acc_t<T>) == 8) return 1;
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ < 900
+  return P == 128 ? 2 : 1;
+#else
+  return 2;
+#endif
+}
+
+template <typename T, int P>
+__global__ void __launch_bounds__(kThreads, fused_min_blocks<T, P>())
     fused_decode_kernel(const Triplane<T> planes, const Query<T> query, const int pe_freqs,
                         const Mlp<T> mlp, T* __restrict__ logits,
                         uint8_t* __restrict__ labels) {

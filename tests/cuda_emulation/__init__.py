@@ -6,11 +6,12 @@ by the host compiler against the headers in ``include/``, which stand in for the
 barriers and warp exchanges, shared memory is per block with guard bytes, WMMA products round
 as the tensor cores do, and misuse (divergent barriers, misaligned fragment loads, overrunning
 shared memory, a launch asking for more shared memory than it opted into) fails the launch
-with a message. The glue registers its kernels as the CPU kernels of a library
-``t3fast_emu`` with t3fast's schemas, so ``torch.ops.t3fast_emu.<op>`` on CPU tensors runs
-exactly what ``torch.ops.t3fast.<op>`` runs on a GPU: the glue's checks, allocations and
-precision rules (it reads CUDA's autocast state and ``allow_tf32`` as on a GPU), then the
-kernels. The only rewriting is mechanical: ``kernel<<<grid, block, smem, stream>>>(args)``
+with a message; a misaligned vector load (e.g. a ``float4`` off its 16 bytes, which faults on
+a GPU) aborts the process with UBSan's report. The glue registers its kernels as the CPU
+kernels of a library ``t3fast_emu`` with t3fast's schemas, so ``torch.ops.t3fast_emu.<op>`` on
+CPU tensors runs exactly what ``torch.ops.t3fast.<op>`` runs on a GPU: the glue's checks,
+allocations and precision rules (it reads CUDA's autocast state and ``allow_tf32`` as on a
+GPU), then the kernels. The only rewriting is mechanical: ``kernel<<<grid, block, smem, stream>>>(args)``
 becomes a call, the dynamic ``extern __shared__`` buffer a pointer, and the glue's
 ``TORCH_LIBRARY_IMPL(t3fast, CUDA, m)`` registers for ``t3fast_emu`` on the CPU. What it
 cannot show: speed, the hardware's memory model beyond barriers and atomics (blocks run one
@@ -95,7 +96,7 @@ def load() -> ModuleType:
 
     files = _generated()
     fixed = [HERE / "harness.cpp"]
-    inputs = [*fixed, *sorted((HERE / "include").iterdir()), *sorted(CSRC.glob("*.h")),
+    inputs = [*fixed, Path(__file__), *sorted((HERE / "include").iterdir()), *sorted(CSRC.glob("*.h")),
               *sorted((CSRC / "cuda").glob("*.h")), *sorted((CSRC / "cuda").glob("*.cuh"))]
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in inputs)
                             + "".join(files.values()).encode()).hexdigest()[:16]
@@ -107,7 +108,11 @@ def load() -> ModuleType:
     sources = [str(p) for p in fixed] + [str(build / name) for name in files if name.endswith(".cpp")]
     return load_extension(name=f"t3fast_cuda_emulation_{digest}", sources=sources, build_directory=str(build),
                           extra_include_paths=[str(build), str(HERE / "include"), str(CSRC)],
-                          extra_cflags=["-O2", "-ffp-contract=off"], verbose=False)
+                          # a misaligned vector load (a float4 off its 16 bytes) faults on a GPU: here
+                          # UBSan's alignment check aborts with the file and line
+                          extra_cflags=["-O2", "-ffp-contract=off", "-fsanitize=alignment",
+                                        "-fno-sanitize-recover=alignment"],
+                          extra_ldflags=["-fsanitize=alignment"], verbose=False)
 
 
 @contextmanager

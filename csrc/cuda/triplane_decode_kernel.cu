@@ -21,19 +21,19 @@
 // The block holds 256 x 64 = 16384 accumulators per layer at most, hence P = 128 points for
 // widths up to 128, 64 up to 256, 32 up to 512 (kTriplaneMaxWidth); the launcher takes the
 // largest P that covers the widest layer and whose shared memory fits the device. Narrow
-// layers (e.g. the class layer) use a thinner register tile (TP = 4, 2, 1 points per thread)
-// so that most threads still have work; each thread's 8 outputs are consecutive and the
-// weight chunk is stored transposed, `wsm` [8][outputs + 4], so its weights are two 128-bit
-// loads. The wide layers (TP = 8 or 4: the hidden layers of the decoders) in float use
-// mlp_layer_wide: every shared-memory read is a 128-bit load without bank conflicts (4 loads
-// per 64 FMAs at TP = 8; one value per load, 16 loads per 64 FMAs, left the SIMT pipes
-// waiting on shared memory), and the weights are double-buffered: the next chunk is fetched
-// into registers while the current one is multiplied, one barrier per chunk.
-// Shared memory per block is ((P + 4) x padded widest width + 2 x 8 x (rows + 4) + 3 P) x 4
-// + 8 P bytes for a widest pass of rows outputs, e.g. about 87 KB for hidden width 256
-// (P = 64): two blocks per SM on H100 (the kernel is built for at most 128 registers per
-// thread there for that reason; see fused_min_blocks). The weights are
-// re-read from L2 once per tile and layer. Tensor cores are not used.
+// layers (e.g. the class layer) use a thinner register tile (TP = 2 or 1 points per thread,
+// and 4 in float64) so that most threads still have work; each thread's 8 outputs are
+// consecutive and the weight chunk is stored transposed, `wsm` [8][outputs + 4], so its
+// weights are two 128-bit loads. The wide layers (TP = 8 or 4: the hidden layers of the
+// decoders) in float use mlp_layer_wide: every shared-memory read is a 128-bit load without
+// bank conflicts (4 loads per 64 FMAs at TP = 8; one value per load, 16 loads per 64 FMAs,
+// left the SIMT pipes waiting on shared memory), and the weights are double-buffered: the
+// next chunk is fetched into registers while the current one is multiplied, one barrier per
+// chunk. Shared memory per block is ((P + 4) x padded widest width + 2 x 8 x (rows + 4) +
+// 3 P) x 4 + 8 P bytes for a widest pass of rows outputs, e.g. about 87 KB for hidden width
+// 256 (P = 64): two blocks per SM on H100 (the kernel is built for at most 128 registers per
+// thread there for that reason; see fused_min_blocks). The weights are re-read from L2 once
+// per tile and layer. Tensor cores are not used.
 //
 // Backward: see triplane_decode.cpp (chunked recomputation with cuBLAS GEMMs); the kernels
 // here compute a chunk's features and scatter the feature gradient into the planes.

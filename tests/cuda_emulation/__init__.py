@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,7 +30,12 @@ from functools import cache
 from pathlib import Path
 from types import ModuleType
 
+import pytest
 import torch
+
+#: the tests that build the emulator skip without a host C++ compiler
+requires_host_compiler = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                                            reason="needs a host C++ compiler")
 
 HERE = Path(__file__).resolve().parent
 CSRC = HERE.parents[1] / "csrc"
@@ -48,22 +54,27 @@ def rewrite_kernels(source: str) -> str:
     return _KERNEL_PRELUDE + source
 
 
+def _replace_required(source: str, old: str, new: str, what: str) -> str:
+    """``source`` with ``old`` replaced by ``new``; an error naming ``what`` when the source no
+    longer holds ``old`` (the rewrite would silently do nothing)."""
+    if old not in source:
+        raise ValueError(f"{what} no longer holds {old.strip()!r}: the emulator's rewrite needs updating")
+    return source.replace(old, new)
+
+
 def rewrite_glue(source: str) -> str:
     """A glue file registering its kernels for ``t3fast_emu`` on the CPU. Its GEMMs with a
     float32 result of low-precision operands (``at::mm(a, b, acc)``, CUDA only) become float32
     GEMMs of the same operands: exact products accumulated in float32, as cuBLAS computes them."""
-    if "TORCH_LIBRARY_IMPL(t3fast, CUDA, m)" not in source:
-        raise ValueError("glue file without TORCH_LIBRARY_IMPL(t3fast, CUDA, m)")
     source = _MM_TO.sub(r"at::mm((\1).to(\3), (\2).to(\3))", source)
-    return source.replace("TORCH_LIBRARY_IMPL(t3fast, CUDA, m)", "TORCH_LIBRARY_IMPL(t3fast_emu, CPU, m)")
+    return _replace_required(source, "TORCH_LIBRARY_IMPL(t3fast, CUDA, m)", "TORCH_LIBRARY_IMPL(t3fast_emu, CPU, m)",
+                             "a CUDA glue file")
 
 
 def rewrite_checks(source: str) -> str:
     """``csrc/checks.h`` with every tensor taken for a CUDA tensor where the dtypes a backend
     accepts are checked: the emulated glue's tensors live on the CPU."""
-    if "  if (t.is_cuda()) {" not in source:
-        raise ValueError("csrc/checks.h no longer picks the accepted dtypes by t.is_cuda()")
-    return source.replace("  if (t.is_cuda()) {", "  if (true) {  // emulated CUDA")
+    return _replace_required(source, "  if (t.is_cuda()) {", "  if (true) {  // emulated CUDA", "csrc/checks.h")
 
 
 def schemas(source: str) -> str:

@@ -5,25 +5,20 @@ a GPU must show (its metrics equal to the CPU run's)."""
 
 from __future__ import annotations
 
-import shutil
-
-import pytest
 import torch
 
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.host_syncs import sync_free
 from t3fast.pretrained import load_world_model
+from tests.cuda_emulation import emulated_ops, requires_host_compiler
 
-pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
-                                reason="needs a host C++ compiler")
+pytestmark = requires_host_compiler
 
 
 def test_the_shipped_forecast_through_the_cuda_kernels_is_the_cpus():
     """Two windows in one batch (their agents in one set of fixed slots, as a GPU batches
     them) against each window forecast alone on the CPU."""
-    from tests.cuda_emulation import emulated_ops
-
     model = load_world_model("wm-small")
     data = SyntheticDriving("val", 1, 20, stride=9)
     samples = [data[0], data[1]]

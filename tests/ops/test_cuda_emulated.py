@@ -10,21 +10,20 @@ enforces CUDA's rules. Speed is not shown here (see ``benchmarks/gpu``).
 from __future__ import annotations
 
 import math
-import shutil
 from contextlib import contextmanager
 
 import pytest
 import torch
 
 from t3fast.ops import reference
+from tests.cuda_emulation import load, requires_host_compiler
 from tests.ops import test_bev_components as bev_cases
 from tests.ops import test_box_fit as box_fit_cases
 from tests.ops import test_draw_boxes as draw_cases
 from tests.ops.lowp_reference import kink_free_upstream, rounded_decode
 from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, assert_close_lowp, decoder, lowp_pair, points_pair
 
-pytestmark = pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
-                                reason="needs a host C++ compiler")
+pytestmark = requires_host_compiler
 
 # The tiling cases: every point tile of the SIMT kernel (128, 64, 32 points) with each of its
 # register tiles (1, 2, 4, 8 points per thread), every warp grid of the tensor-core kernel,
@@ -36,8 +35,6 @@ GRID = (9, 7, 5)
 
 @pytest.fixture(scope="module")
 def emu():
-    from tests.cuda_emulation import load
-
     return load()
 
 
@@ -74,6 +71,13 @@ def float64_case(hidden, classes, pe_freqs=2, seed=0):
     _, (planes, weights, biases) = decoder(torch.float32, hidden=hidden, classes=classes, pe_freqs=pe_freqs,
                                            seed=seed, device="cpu")
     return [t.double() for t in planes], [w.double() for w in weights], [b.double() for b in biases]
+
+
+def float64_decode(planes, weights, biases, **query):
+    """The reference on every input (points included) in float64: the exact logits."""
+    query = {k: v.double() if isinstance(v, torch.Tensor) else v for k, v in query.items()}
+    return reference.triplane_decode(*(t.double() for t in planes), [w.double() for w in weights],
+                                     [b.double() for b in biases], **query)
 
 
 def assert_same(got, want, rtol=0.0, atol_scale=0.0):
@@ -142,9 +146,7 @@ def test_float32_follows_allow_tf32(cuda_ops, mode):
     _, (planes, weights, biases) = decoder(torch.float32, hidden=(256, 256), device="cpu")
     points = points_pair(torch.float32, n=300, device="cpu")[1]
     query = {"grid": (10, 9, 4)} if mode == "grid" else {"points": points}
-    exact = reference.triplane_decode(*(t.double() for t in planes), [w.double() for w in weights],
-                                      [b.double() for b in biases],
-                                      **({"points": points.double()} if mode == "points" else query))
+    exact = float64_decode(planes, weights, biases, **query)
     scale = exact.abs().max().item()
     fp32 = decode(cuda_ops, planes, weights, biases, **query)
     tf32 = decode(cuda_ops, planes, weights, biases, tf32=True, **query)
@@ -223,8 +225,7 @@ def test_papers_decoder_size(cuda_ops):
     both kernels, over more than one block of points."""
     _, (planes, weights, biases) = decoder(torch.float32, channels=64, hidden=(256,) * 4, batch=1, device="cpu")
     points = points_pair(torch.float32, batch=1, n=150, device="cpu")[1]
-    exact = reference.triplane_decode(*(t.double() for t in planes), [w.double() for w in weights],
-                                      [b.double() for b in biases], points=points.double())
+    exact = float64_decode(planes, weights, biases, points=points)
     scale = exact.abs().max().item()
     fp32 = decode(cuda_ops, planes, weights, biases, points=points)
     torch.testing.assert_close(fp32.double(), exact, rtol=1e-5, atol=1e-5 * scale)
@@ -250,10 +251,9 @@ def test_backward_is_the_cpu_backward(cuda_ops, dtype, tol, mode):
     points = points_pair(torch.float32, n=800, device="cpu")[1].to(dtype)
     query = [None, [24, 20, 8]] if mode == "grid" else [points, None]
     preacts = []
-    rounded_decode(*planes, weights, biases, dtype=dtype, preacts=preacts,
-                   **({"grid": query[1]} if mode == "grid" else {"points": points}))
-    out = reference.triplane_decode(*planes, weights, biases, **({"grid": query[1]} if mode == "grid" else
-                                                                   {"points": points}))
+    # in the inputs' own dtype rounded_decode rounds nothing: the reference, with its pre-activations
+    out = rounded_decode(*planes, weights, biases, dtype=dtype, preacts=preacts,
+                         **({"grid": query[1]} if mode == "grid" else {"points": points}))
     upstream = kink_free_upstream(torch.randn(out.shape, dtype=dtype), preacts, KINK_MARGIN[torch.float32])
     got = cuda_ops.triplane_decode_backward(upstream, *planes, weights, biases, *query, 6)
     want = torch.ops.t3fast.triplane_decode_backward(upstream, *planes, weights, biases, *query, 6)
@@ -280,8 +280,8 @@ def test_low_precision_backward_is_the_rounded_references(cuda_ops, dtype, autoc
     else:
         got = cuda_ops.triplane_decode_backward(upstream32.to(dtype), *planes, weights, biases, None, [24, 20, 8], 6)
     flat = [*got[:3], *got[3], *got[4]]
+    tol = TOLERANCE[dtype]
     for a, e in zip(flat, want):
-        tol = TOLERANCE[dtype]
         torch.testing.assert_close(a.float(), e, rtol=tol, atol=tol * e.abs().max().item() + 1e-6)
 
 

@@ -3,22 +3,19 @@
 
 #include <cmath>
 #include <cstdint>
-#include <cstring>
+
+#include "float_bits.h"
 
 struct __nv_bfloat16 {
   uint16_t bits;
 };
 
 inline float __bfloat162float(__nv_bfloat16 h) {
-  const uint32_t u = static_cast<uint32_t>(h.bits) << 16;
-  float v;
-  std::memcpy(&v, &u, 4);
-  return v;
+  return t3emu::bits_float(static_cast<uint32_t>(h.bits) << 16);
 }
 
 inline __nv_bfloat16 __float2bfloat16_rn(float f) {
-  uint32_t u;
-  std::memcpy(&u, &f, 4);
+  uint32_t u = t3emu::float_bits(f);
   __nv_bfloat16 h;
   if (std::isnan(f)) {
     h.bits = static_cast<uint16_t>((u >> 16) | 0x40u);

@@ -8,10 +8,10 @@ struct alignas(16) float4 {
 };
 
 typedef int cudaError_t;
-constexpr cudaError_t cudaSuccess = 0;
-constexpr cudaError_t cudaErrorInvalidValue = 1;
-constexpr cudaError_t cudaErrorInvalidConfiguration = 9;
-constexpr cudaError_t cudaErrorLaunchFailure = 719;
+constexpr cudaError_t cudaSuccess = ::t3emu::kSuccess;
+constexpr cudaError_t cudaErrorInvalidValue = ::t3emu::kInvalidValue;
+constexpr cudaError_t cudaErrorInvalidConfiguration = ::t3emu::kInvalidConfiguration;
+constexpr cudaError_t cudaErrorLaunchFailure = ::t3emu::kLaunchFailure;
 
 typedef struct CUstream_st* cudaStream_t;
 

@@ -12,6 +12,7 @@
 
 #include "cuda_bf16.h"
 #include "cuda_fp16.h"
+#include "float_bits.h"
 #include "t3emu.h"
 
 namespace nvcuda {
@@ -54,20 +55,10 @@ inline float to_float(__nv_bfloat16 v) { return __bfloat162float(v); }
 inline float __float_to_tf32(float v) {
   // cvt.rna.tf32.f32: round to 10 mantissa bits, ties away from zero
   if (!std::isfinite(v)) return v;
-  uint32_t u;
-  std::memcpy(&u, &v, 4);
-  u = (u + 0x1000u) & ~0x1FFFu;
-  std::memcpy(&v, &u, 4);
-  return v;
+  return ::t3emu::bits_float((::t3emu::float_bits(v) + 0x1000u) & ~0x1FFFu);
 }
 
-inline float tf32_operand(float v) {
-  uint32_t u;
-  std::memcpy(&u, &v, 4);
-  u &= ~0x1FFFu;
-  std::memcpy(&v, &u, 4);
-  return v;
-}
+inline float tf32_operand(float v) { return ::t3emu::bits_float(::t3emu::float_bits(v) & ~0x1FFFu); }
 
 template <typename S>
 inline void check_access(const S* p, unsigned ldm, const char* what) {

@@ -37,6 +37,12 @@ struct dim3 {
 
 namespace t3emu {
 
+// The CUDA error codes the emulator returns (cuda_runtime.h names them).
+constexpr int kSuccess = 0;
+constexpr int kInvalidValue = 1;
+constexpr int kInvalidConfiguration = 9;
+constexpr int kLaunchFailure = 719;
+
 enum class Wait { kNone, kBlock, kWarp, kDone };
 
 struct Fiber {
@@ -89,6 +95,11 @@ inline const dim3& block_idx() { return block_state()->block_idx; }
 inline const dim3& block_dim() { return block_state()->block_dim; }
 inline const dim3& grid_dim() { return block_state()->grid_dim; }
 inline unsigned char* dynamic_smem() { return block_state()->smem; }
+
+// Warp intrinsics are emulated for whole warps only.
+inline void require_full_warp(unsigned mask, const char* what) {
+  if (mask != 0xffffffffu) emu_fail(std::string(what) + " with a partial mask is not emulated");
+}
 
 inline void wait_at(Wait w, int vote) {
   BlockState* b = block_state();
@@ -190,7 +201,7 @@ constexpr int kOptinSmem = 227 * 1024;  // an H100's opt-in limit per block
 constexpr int kSms = 132;
 
 inline int& last_error() {
-  static thread_local int err = 0;
+  static thread_local int err = kSuccess;
   return err;
 }
 
@@ -202,7 +213,7 @@ inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
   if (threads == 0 || threads > 1024 || grid.x == 0 || grid.y == 0 || grid.z == 0 ||
       grid.y > 65535 || grid.z > 65535) {
     launch_error() = "invalid launch configuration";
-    return last_error() = 9;  // cudaErrorInvalidConfiguration
+    return last_error() = kInvalidConfiguration;
   }
   auto limit = smem_limits().find(kernel);
   const size_t allowed = limit == smem_limits().end() ? kDefaultSmem : limit->second;
@@ -210,7 +221,7 @@ inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
     launch_error() = "launch asks for " + std::to_string(smem) +
                      " bytes of dynamic shared memory, more than the kernel's limit " +
                      std::to_string(allowed) + " (cudaFuncSetAttribute)";
-    return last_error() = 1;  // cudaErrorInvalidValue
+    return last_error() = kInvalidValue;
   }
   BlockState b;
   b.block_dim = block;
@@ -219,19 +230,19 @@ inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
   std::unique_ptr<unsigned char[]> raw(new unsigned char[smem + kGuardBytes + 128]);
   unsigned char* aligned = reinterpret_cast<unsigned char*>(
       (reinterpret_cast<uintptr_t>(raw.get()) + 127) / 128 * 128);
+  b.smem = aligned;
   BlockState* outer = block_state();
   block_state() = &b;
-  int err = 0;
-  for (unsigned z = 0; z < grid.z && err == 0; ++z) {
-    for (unsigned y = 0; y < grid.y && err == 0; ++y) {
-      for (unsigned x = 0; x < grid.x && err == 0; ++x) {
+  int err = kSuccess;
+  for (unsigned z = 0; z < grid.z && err == kSuccess; ++z) {
+    for (unsigned y = 0; y < grid.y && err == kSuccess; ++y) {
+      for (unsigned x = 0; x < grid.x && err == kSuccess; ++x) {
         b.block_idx = dim3(x, y, z);
         // garbage, as a GPU leaves it: a kernel must not read shared memory it did not write
         std::memset(aligned, 0x7F, smem);
         std::memset(aligned + smem, kGuard, kGuardBytes);
-        b.smem = aligned;
         if (!run_block(b)) {
-          err = 719;  // cudaErrorLaunchFailure
+          err = kLaunchFailure;
           break;
         }
         for (size_t i = 0; i < kGuardBytes; ++i) {
@@ -239,7 +250,7 @@ inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
             launch_error() = "a block wrote past the end of its dynamic shared memory (" +
                              std::to_string(smem) + " bytes) at byte " +
                              std::to_string(smem + i);
-            err = 719;
+            err = kLaunchFailure;
             break;
           }
         }

@@ -28,7 +28,7 @@ inline int __syncthreads_or(int v) {
   return ::t3emu::block_state()->current->result;
 }
 inline void __syncwarp(unsigned mask = 0xffffffffu) {
-  if (mask != 0xffffffffu) ::t3emu::emu_fail("__syncwarp with a partial mask is not emulated");
+  ::t3emu::require_full_warp(mask, "__syncwarp");
   ::t3emu::wait_at(::t3emu::Wait::kWarp, 0);
 }
 [[noreturn]] inline void __trap() { ::t3emu::emu_fail("__trap() reached"); }
@@ -41,7 +41,7 @@ namespace t3emu {
 template <typename T, typename Read>
 inline auto warp_exchange(unsigned mask, T v, Read read) {
   static_assert(sizeof(T) <= sizeof(uint64_t), "exchanged values are at most 8 bytes");
-  if (mask != 0xffffffffu) emu_fail("warp intrinsics with a partial mask are not emulated");
+  require_full_warp(mask, "a warp shuffle or ballot");
   BlockState* b = block_state();
   Fiber* self = b->current;
   std::memcpy(&self->posted, &v, sizeof(T));

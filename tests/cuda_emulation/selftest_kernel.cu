@@ -1,5 +1,7 @@
 // Kernels that check the emulator itself: each is correct only if the emulator keeps CUDA's
-// rules (barriers, shared memory, WMMA alignment), or breaks one of them on purpose.
+// rules (barriers, shared memory, asynchronous copies, WMMA alignment), or breaks one of them
+// on purpose.
+#include <cuda_pipeline.h>
 #include <cuda_runtime.h>
 #include <mma.h>
 
@@ -27,6 +29,37 @@ __global__ void racy_reverse_kernel(const float* in, float* out) {
   const int t = threadIdx.x;
   buf[t] = in[blockIdx.x * kThreads + t];
   out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
+}
+
+// out = in reversed, staged in shared memory by asynchronous copies: right only if a copy
+// lands when its thread waits for it and the barrier orders every thread's copy before the reads.
+__global__ void staged_reverse_kernel(const float* in, float* out) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  const int t = threadIdx.x;
+  __pipeline_memcpy_async(buf + t, in + blockIdx.x * kThreads + t, sizeof(float));
+  __pipeline_commit();
+  __pipeline_wait_prior(0);
+  __syncthreads();
+  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
+}
+
+// The same without waiting for the copies: nothing has landed when the threads read.
+__global__ void unwaited_reverse_kernel(const float* in, float* out) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  const int t = threadIdx.x;
+  __pipeline_memcpy_async(buf + t, in + blockIdx.x * kThreads + t, sizeof(float));
+  __pipeline_commit();
+  __syncthreads();
+  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
+}
+
+// A 16-byte asynchronous copy from an address 4 bytes past an aligned one.
+__global__ void misaligned_async_copy_kernel(const float* in) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  if (threadIdx.x == 0) __pipeline_memcpy_async(smem, in + 1, 16);
+  __pipeline_commit();
 }
 
 // out[block] = 1 when any input of the block is positive (__syncthreads_or), written by
@@ -74,6 +107,12 @@ cudaError_t emulator_selftest(const std::string& name, const float* in, float* o
     reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
   } else if (name == "racy_reverse") {
     racy_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  } else if (name == "staged_reverse") {
+    staged_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  } else if (name == "unwaited_reverse") {
+    unwaited_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  } else if (name == "misaligned_async_copy") {
+    misaligned_async_copy_kernel<<<1, kThreads, 64>>>(in);
   } else if (name == "vote") {
     vote_kernel<<<blocks, kThreads>>>(in, out);
   } else if (name == "divergent") {

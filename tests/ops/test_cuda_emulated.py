@@ -103,6 +103,9 @@ def test_emulator_barriers_and_votes_are_real(emu):
     assert torch.equal(emu.selftest("reverse", x), x.view(3, 128).flip(1).reshape(-1))
     # without the barrier the early threads read shared memory nobody wrote yet
     assert not torch.equal(emu.selftest("racy_reverse", x), x.view(3, 128).flip(1).reshape(-1))
+    # asynchronous copies land when waited for, not before
+    assert torch.equal(emu.selftest("staged_reverse", x), x.view(3, 128).flip(1).reshape(-1))
+    assert not torch.equal(emu.selftest("unwaited_reverse", x), x.view(3, 128).flip(1).reshape(-1))
     votes = torch.full((2 * 128,), -1.0)
     votes[200] = 1.0
     # block 0 has no positive input, block 1 one; all 32 lanes of warp 0 passed __syncwarp
@@ -113,6 +116,7 @@ def test_emulator_barriers_and_votes_are_real(emu):
     ("divergent", "divergent barriers"),
     ("overrun", "wrote past the end of its dynamic shared memory"),
     ("misaligned", "not 256-bit aligned"),
+    ("misaligned_async_copy", "not aligned to its size"),
     ("unopted_shared_memory", "more than the kernel's limit"),
 ])
 def test_emulator_fails_launches_that_break_cuda_rules(emu, name, message):

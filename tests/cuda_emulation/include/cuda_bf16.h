@@ -10,6 +10,8 @@ struct __nv_bfloat16 {
   uint16_t bits;
 };
 
+inline unsigned short __bfloat16_as_ushort(__nv_bfloat16 h) { return h.bits; }
+
 inline float __bfloat162float(__nv_bfloat16 h) {
   return t3emu::bits_float(static_cast<uint32_t>(h.bits) << 16);
 }

@@ -10,6 +10,8 @@ struct __half {
   uint16_t bits;
 };
 
+inline unsigned short __half_as_ushort(__half h) { return h.bits; }
+
 inline float __half2float(__half h) {
   const uint32_t sign = static_cast<uint32_t>(h.bits & 0x8000u) << 16;
   const uint32_t exp = (h.bits >> 10) & 0x1Fu;

@@ -6,6 +6,9 @@
 struct alignas(16) float4 {
   float x, y, z, w;
 };
+struct alignas(16) uint4 {
+  unsigned x, y, z, w;
+};
 
 typedef int cudaError_t;
 constexpr cudaError_t cudaSuccess = ::t3emu::kSuccess;

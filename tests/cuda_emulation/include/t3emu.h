@@ -11,7 +11,8 @@
 // race-free kernels. Shared memory: `__shared__` variables are function statics (one copy,
 // shared by the block's fibers; blocks run one at a time); the dynamic buffer has exactly the
 // launch's size, is filled with garbage before every block (a kernel must not read what it
-// did not write) and is followed by guard bytes that are checked after the block.
+// did not write) and is followed by guard bytes that are checked after the block. Asynchronous
+// copies to shared memory (cuda_pipeline.h) land only when their thread waits for them.
 #pragma once
 
 #include <ucontext.h>
@@ -23,6 +24,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <deque>
 #include <functional>
 #include <map>
 #include <memory>
@@ -45,6 +47,14 @@ constexpr int kLaunchFailure = 719;
 
 enum class Wait { kNone, kBlock, kWarp, kDone };
 
+// One asynchronous copy to shared memory: its source read when issued, written to `dst` when
+// the issuing thread waits for its group.
+struct AsyncCopy {
+  unsigned char* dst;
+  unsigned char bytes[16];
+  size_t size;
+};
+
 struct Fiber {
   ucontext_t ctx;
   std::unique_ptr<char[]> stack;
@@ -54,6 +64,8 @@ struct Fiber {
   int vote = 0;         // this thread's operand of a voting barrier
   int result = 0;       // the vote's result, once the barrier opens
   uint64_t posted = 0;  // this lane's value in a warp exchange (shuffle, ballot)
+  std::vector<AsyncCopy> uncommitted;           // copies issued since the last commit
+  std::deque<std::vector<AsyncCopy>> in_flight;  // committed groups, oldest first
 };
 
 struct BlockState {
@@ -62,6 +74,7 @@ struct BlockState {
   ucontext_t scheduler;
   Fiber* current = nullptr;
   unsigned char* smem = nullptr;
+  size_t smem_bytes = 0;
   const std::function<void()>* body = nullptr;
 };
 
@@ -129,6 +142,8 @@ inline bool run_block(BlockState& b) {
     f.thread_idx = dim3(t % b.block_dim.x, t / b.block_dim.x % b.block_dim.y,
                         t / (b.block_dim.x * b.block_dim.y));
     f.wait = Wait::kNone;
+    f.uncommitted.clear();
+    f.in_flight.clear();
     if (!f.stack) f.stack.reset(new char[kStackBytes]);
     getcontext(&f.ctx);
     f.ctx.uc_stack.ss_sp = f.stack.get();
@@ -231,6 +246,7 @@ inline int run_grid(const void* kernel, dim3 grid, dim3 block, size_t smem,
   unsigned char* aligned = reinterpret_cast<unsigned char*>(
       (reinterpret_cast<uintptr_t>(raw.get()) + 127) / 128 * 128);
   b.smem = aligned;
+  b.smem_bytes = smem;
   BlockState* outer = block_state();
   block_state() = &b;
   int err = kSuccess;

@@ -35,7 +35,7 @@ from t3fast import ops
 from t3fast.data.classes import AGENT_CLASSES, GRID_LOWER, NUM_CLASSES, VOXEL_SIZE, in_classes
 from t3fast.device_constants import device_constant
 from t3fast.host_syncs import reads_host
-from t3fast.models.ego_motion import compose
+from t3fast.models.ego_motion import transform_points
 
 # metres an agent's centroid may move between two frames (0.5 s) to be matched: 16 m/s. At 4 m,
 # 13 % of the moving agents' cells of training windows (the fast cars) had no velocity.
@@ -388,7 +388,7 @@ def cell_metres(cells: Tensor, pose: Tensor) -> Tensor:
     frame) -> metres in the present frame."""
     lower = device_constant(GRID_LOWER[:2], cells.dtype, cells.device)
     local = lower + (cells + 0.5) * VOXEL_SIZE
-    return compose(pose.expand(*local.shape[:-1], 3), torch.cat([local, torch.zeros_like(local[..., :1])], -1))[..., :2]
+    return transform_points(pose, local)
 
 
 def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from t3fast.data.classes import FREE, VOXEL_SIZE
+from t3fast.device_constants import made_once
 
 
 def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
@@ -37,12 +38,18 @@ def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
     return torch.stack([rel[..., 0, 3], rel[..., 1, 3], yaw], dim=-1).to(ego_poses.dtype)
 
 
+def transform_points(pose: Tensor, points: Tensor) -> Tensor:
+    """Points ``[..., 2]`` (x, y, given in the frame at planar ``pose`` ``[..., 3]``) expressed in
+    the pose's reference frame, ``[..., 2]``."""
+    c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+    x = pose[..., 0] + c * points[..., 0] - s * points[..., 1]
+    y = pose[..., 1] + s * points[..., 0] + c * points[..., 1]
+    return torch.stack([x, y], dim=-1)
+
+
 def compose(a: Tensor, b: Tensor) -> Tensor:
     """Pose ``b`` (given in frame ``a``) expressed in ``a``'s reference frame: ``a * b``, ``[..., 3]``."""
-    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
-    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return torch.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], dim=-1)
+    return torch.cat([transform_points(a, b), wrap_angle(a[..., 2:] + b[..., 2:])], dim=-1)
 
 
 def relative(a: Tensor, b: Tensor) -> Tensor:
@@ -68,11 +75,14 @@ def extrapolate_poses(past: Tensor, steps: int) -> Tensor:
     if past.shape[1] < 2:
         raise ValueError(f"extrapolate_poses needs at least 2 past poses, got {past.shape[1]}")
     step = relative(past[:, -2], past[:, -1])
-    pose, out = past[:, -1], []
-    for _ in range(steps):
-        pose = compose(pose, step)
-        out.append(pose)
-    return torch.stack(out, dim=1)
+    present = past[:, -1]
+    # in closed form: step k + 1 moves by the step's translation turned to heading k
+    k = torch.arange(steps, device=past.device, dtype=past.dtype)
+    heading = present[:, 2:] + k * step[:, 2:]  # [B, steps], unwrapped
+    c, s = torch.cos(heading), torch.sin(heading)
+    moves = torch.stack([c * step[:, :1] - s * step[:, 1:2], s * step[:, :1] + c * step[:, 1:2]], dim=-1)
+    xy = present[:, None, :2] + moves.cumsum(1)
+    return torch.cat([xy, wrap_angle(heading + step[:, 2:]).unsqueeze(-1)], dim=-1)
 
 
 def poses_from_displacements(displacements: Tensor) -> Tensor:
@@ -102,15 +112,19 @@ def displacements_from_poses(poses: Tensor) -> Tensor:
     return torch.cat([xy[:, :1], xy[:, 1:] - xy[:, :-1]], dim=1)
 
 
-def _columns_in(target_in_source: Tensor, grid: tuple[int, int]) -> Tensor:
-    """Centres of a target frame's voxel columns in the source frame, ``[B, X * Y, 3]`` (x, y, yaw)."""
-    nx, ny = grid[:2]
-    dev, dt = target_in_source.device, target_in_source.dtype
-    xs = VOXEL_SIZE * (torch.arange(nx, device=dev, dtype=dt) + 0.5 - nx / 2)
-    ys = VOXEL_SIZE * (torch.arange(ny, device=dev, dtype=dt) + 0.5 - ny / 2)
+@made_once
+def _column_centres(nx: int, ny: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """A frame's voxel column centres ``[X * Y, 2]`` (x, y in metres) in that frame."""
+    xs = VOXEL_SIZE * (torch.arange(nx, device=device, dtype=dtype) + 0.5 - nx / 2)
+    ys = VOXEL_SIZE * (torch.arange(ny, device=device, dtype=dtype) + 0.5 - ny / 2)
     gx, gy = torch.meshgrid(xs, ys, indexing="ij")
-    cols = torch.stack([gx.flatten(), gy.flatten(), torch.zeros_like(gx.flatten())], -1)
-    return compose(target_in_source[:, None, :], cols[None])
+    return torch.stack([gx.flatten(), gy.flatten()], -1)
+
+
+def _columns_in(target_in_source: Tensor, grid: tuple[int, int]) -> Tensor:
+    """Centres of a target frame's voxel columns in the source frame, ``[B, X * Y, 2]`` (x, y)."""
+    cols = _column_centres(grid[0], grid[1], target_in_source.device, target_in_source.dtype)
+    return transform_points(target_in_source[:, None, :], cols[None])
 
 
 def column_index(target_in_source: Tensor, grid: tuple[int, int]) -> tuple[Tensor, Tensor]:

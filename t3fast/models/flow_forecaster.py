@@ -186,19 +186,24 @@ class FlowTriplaneForecaster(nn.Module):
             raise ValueError(f"FlowTriplaneForecaster needs the agents' velocities [{b}, {VELOCITY_CHANNELS}, {h}, "
                              f"{w}] (t3fast.forecast.agents.measured_velocities), got {got}")
         velocity = velocity.to(xy.dtype)
-        costs = torch.cat([matching_costs(xy[:, -1 - p], xy[:, -2 - p], self.match_radius)
-                           for p in range(self.match_pairs)], dim=1)
+        # the pairs (present, previous), (previous, the one before), ... compared in one batch
+        pairs = self.match_pairs
+        newer, older = xy[:, t - pairs :].flip(1), xy[:, t - 1 - pairs : t - 1].flip(1)
+        costs = matching_costs(newer.flatten(0, 1), older.flatten(0, 1), self.match_radius).view(b, -1, h, w)
         inputs = [xy.flatten(1, 2), (xy[:, 1:] - xy[:, :-1]).flatten(1, 2), self.match_stem(costs),
                   velocity / self.flow_scale]
         deltas = self.unet(torch.cat(inputs, dim=1)).view(b, self.steps, c, h, w)
         displacements = self.tracked_motion(velocity, xy[:, -1], xy[:, -2])
         present = xy[:, -1]
         weight = torch.eye(c, dtype=present.dtype, device=present.device) + self.fuse_residual
-        futures = []
-        for k in range(self.steps):
-            moved = move_plane(present, displacements[:, k], self.fill)
-            nxt = delta_fuse(deltas[:, k].contiguous(), moved.contiguous(), weight, self.fuse_bias)
-            futures.append(Triplane(nxt, *(None if p is None else p[:, -1] for p in past[1:])))
+        # every step at once, the steps folded into the batch
+        steps = self.steps
+        moved = move_plane(present.unsqueeze(1).expand(b, steps, c, h, w).reshape(b * steps, c, h, w),
+                           displacements.reshape(b * steps, 2, h, w), self.fill)
+        nxt = delta_fuse(deltas.reshape(b * steps, c, h, w), moved.contiguous(), weight,
+                         self.fuse_bias).view(b, steps, c, h, w)
+        others = [None if p is None else p[:, -1] for p in past[1:]]
+        futures = [Triplane(nxt[:, k], *others) for k in range(steps)]
         return futures, displacements, deltas
 
     def reset_motion_head(self) -> None:

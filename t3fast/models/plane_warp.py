@@ -12,9 +12,12 @@ import torch
 from torch import Tensor
 from torch.nn import functional as F
 
+from t3fast.device_constants import made_once
 
+
+@made_once
 def cell_grid(h: int, w: int, device: torch.device, dtype: torch.dtype = torch.float32) -> Tensor:
-    """Cell centres ``[h, w, 2]`` in plane cells: ``(i, j)``."""
+    """Cell centres ``[h, w, 2]`` in plane cells: ``(i, j)`` (made once per device: read-only)."""
     i = torch.arange(h, device=device, dtype=dtype)
     j = torch.arange(w, device=device, dtype=dtype)
     return torch.stack(torch.meshgrid(i, j, indexing="ij"), dim=-1)

@@ -77,6 +77,20 @@ def _stacked(triplanes: Sequence[Triplane]) -> Triplane:
     return Triplane(*(None if planes[0] is None else torch.cat(planes) for planes in zip(*triplanes)))
 
 
+def _turn(prev: Tensor, last: Tensor, min_step: float) -> Tensor:
+    """The angle ``[B]`` from displacement ``prev`` to ``last`` ``[B, 2]``; 0 where either is
+    shorter than ``min_step`` metres (a heading there is noise)."""
+    turn = torch.atan2(prev[:, 0] * last[:, 1] - prev[:, 1] * last[:, 0], (prev * last).sum(-1))
+    moving = (last.norm(dim=-1) > min_step) & (prev.norm(dim=-1) > min_step)
+    return torch.where(moving, turn, torch.zeros_like(turn))
+
+
+def _turned(v: Tensor, angle: Tensor) -> Tensor:
+    """Vectors ``v`` ``[..., 2]`` turned by ``angle`` ``[...]``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], dim=-1)
+
+
 def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     """The next displacement ``[B, 2]`` at constant speed and turn rate: the last displacement of
     ``actions`` ``[B, T, 2]`` turned by the angle between the last two (an arc, as the ego
@@ -85,22 +99,20 @@ def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     last = actions[:, -1]
     if actions.shape[1] < 2:
         return last
-    prev = actions[:, -2]
-    turn = torch.atan2(prev[:, 0] * last[:, 1] - prev[:, 1] * last[:, 0], (prev * last).sum(-1))
-    moving = (last.norm(dim=-1) > min_step) & (prev.norm(dim=-1) > min_step)
-    turn = torch.where(moving, turn, torch.zeros_like(turn))
-    c, s = torch.cos(turn), torch.sin(turn)
-    return torch.stack([c * last[:, 0] - s * last[:, 1], s * last[:, 0] + c * last[:, 1]], dim=-1)
+    return _turned(last, _turn(actions[:, -2], last, min_step))
 
 
-def constant_turn_rate(past_actions: Tensor, steps: int = 6) -> Tensor:
+def constant_turn_rate(past_actions: Tensor, steps: int = 6, min_step: float = 0.2) -> Tensor:
     """Constant speed and turn rate: each displacement is the previous one turned by the angle
-    between the last two past ones (the untrained planner's plan). ``[B, T, 2] -> [B, steps, 2]``."""
-    actions, out = past_actions, []
-    for _ in range(steps):
-        out.append(continue_motion(actions))
-        actions = torch.cat([actions, out[-1].unsqueeze(1)], dim=1)
-    return torch.stack(out, dim=1)
+    between the last two past ones (the untrained planner's plan), :func:`continue_motion`
+    applied ``steps`` times, in closed form: the k-th is the last past one turned k times.
+    ``[B, T, 2] -> [B, steps, 2]``."""
+    last = past_actions[:, -1]
+    if past_actions.shape[1] < 2:
+        return last.unsqueeze(1).expand(-1, steps, -1).clone()
+    turn = _turn(past_actions[:, -2], last, min_step)
+    k = torch.arange(1, steps + 1, device=last.device, dtype=last.dtype)
+    return _turned(last.unsqueeze(1), turn.unsqueeze(1) * k)
 
 
 class MotionPlanner(nn.Module):

@@ -61,6 +61,21 @@ def test_extrapolation_straight_and_arc():
         extrapolate_poses(past[:, :1], 2)
 
 
+def test_extrapolation_is_the_last_step_composed_again_and_again():
+    g = torch.Generator().manual_seed(0)
+    past = torch.randn(16, 3, 3, generator=g, dtype=torch.float64) * torch.tensor([4.0, 4.0, 3.0], dtype=torch.float64)
+    step = relative(past[:, -2], past[:, -1])
+    pose, want = past[:, -1], []
+    for _ in range(6):
+        pose = compose(pose, step)
+        want.append(pose)
+    got = extrapolate_poses(past, 6)
+    want = torch.stack(want, 1)
+    torch.testing.assert_close(got[..., :2], want[..., :2], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got[..., 2], want[..., 2], rtol=0, atol=1e-12)
+    assert got[..., 2].min() >= -math.pi and got[..., 2].max() < math.pi
+
+
 def test_headings_from_displacements():
     steps = torch.tensor([[[1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.0]]])
     poses = poses_from_displacements(steps)

@@ -12,6 +12,8 @@ Modes:
   compile          ``model.compile_forecast()`` (what ``load_world_model(..., compile=True)``
                    does): the forecast after its input checks traced whole, Inductor plus one
                    CUDA graph on a GPU (``mode="default"`` on the CPU)
+  compile-graphs   ``model.compile_forecast(backend="cudagraphs")``: traced whole, the eager
+                   kernels replayed as CUDA graphs (no code generated: compiles in seconds)
 
 Each row: median and 90th-percentile time of one call, FPS (windows forecast per second:
 batch / median), in eager modes the host synchronisations of one call
@@ -39,7 +41,7 @@ from pathlib import Path
 
 import torch
 
-MODES = ["eager", "eager-reference", "cuda-graph", "compile"]
+MODES = ["eager", "eager-reference", "cuda-graph", "compile", "compile-graphs"]
 
 
 def sizes() -> dict:
@@ -99,6 +101,9 @@ def step_function(model, occupancy, poses, mode: str, device: torch.device):
         return step, reference_ops(model) if mode == "eager-reference" else contextlib.nullcontext()
     if mode == "compile":
         model.compile_forecast()
+        return step, contextlib.nullcontext()
+    if mode == "compile-graphs":
+        model.compile_forecast(backend="cudagraphs")
         return step, contextlib.nullcontext()
     if mode == "cuda-graph":
         if device.type != "cuda":
@@ -175,7 +180,7 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int 
     start = time.perf_counter()
     fn, context = step_function(model, occupancy, poses, mode, device)
     with context, torch.no_grad():
-        warmup = 1 if quick else (3 if mode == "compile" else 2)
+        warmup = 1 if quick else (3 if mode.startswith("compile") else 2)
         times = measure(fn, device, warmup, min_iters=2 if quick else 10, max_iters=2 if quick else 200,
                         seconds=0.0 if quick else 2.0)
         counting = time.perf_counter()
@@ -201,7 +206,7 @@ def run_row(size: str, mode: str, device: torch.device, quick: bool, batch: int 
         row["peak_allocated_mb"] = (torch.cuda.max_memory_allocated(device) - base) / 2**20
         row["peak_reserved_mb"] = torch.cuda.max_memory_reserved(device) / 2**20
     del fn, model, occupancy, poses
-    if mode == "compile":
+    if mode.startswith("compile"):
         torch._dynamo.reset()  # drop the compiled code and what its guards hold
     gc.collect()
     return row

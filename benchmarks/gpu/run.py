@@ -151,16 +151,19 @@ def _check_ops(ctx: Context, d: Path) -> tuple[bool, str]:
 def _forecast_steps(ctx: Context, d: Path) -> list[Step]:
     """One process per group of modes: a failed CUDA-graph capture or compilation cannot spoil
     the others (within a group, eager runs first), and a time-out ends only the last group. The
-    shipped model's rows come first (batch 1 eager and replayed from a CUDA graph, batch 64,
-    compiled): the issue's figures; then the untrained sizes and the reference ops.
+    shipped model's rows come first (batch 1 and 64 eager and replayed from a CUDA graph, traced
+    whole with the eager kernels in CUDA graphs, compiled by Inductor): the figures that matter;
+    then the untrained sizes and the reference ops.
     Compilation takes minutes (the six-step rollout is traced whole), so each compiles in its own
     process. Every row but the paper size's compilation profiles one more call (``profile/``)."""
     groups = {"eager": ("tiny", "eager", 1)} if ctx.quick else {
-        "shipped": ("shipped", "eager,cuda-graph", 1), "batch-64": ("shipped", "eager", 64),
+        "shipped": ("shipped", "eager,cuda-graph", 1), "batch-64": ("shipped", "eager,cuda-graph", 64),
+        "graphs-shipped": ("shipped", "compile-graphs", 1), "graphs-batch-64": ("shipped", "compile-graphs", 64),
         "compile-shipped": ("shipped", "compile", 1), "sizes": ("small,paper", "eager,cuda-graph", 1),
         "reference": ("shipped,small,paper", "eager-reference", 1), "compile-batch-64": ("shipped", "compile", 64),
         "compile-paper": ("paper", "compile", 1)}
-    profiled = ("eager", "shipped", "batch-64", "compile-shipped", "sizes", "reference", "compile-batch-64")
+    profiled = ("eager", "shipped", "batch-64", "graphs-shipped", "compile-shipped", "sizes", "reference",
+                "compile-batch-64")
     steps = []
     for name, (sizes, modes, batch) in groups.items():
         argv = [PY, f"{HERE}/forecast.py", "--device", ctx.device, "--sizes", sizes, "--modes", modes,

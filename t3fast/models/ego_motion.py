@@ -33,7 +33,9 @@ def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
     Returns:
         ``[B, T, 3]`` (x, y, yaw); frame ``reference`` is (0, 0, 0).
     """
-    rel = torch.linalg.inv(ego_poses[:, reference : reference + 1].double()) @ ego_poses.double()
+    # inv_ex: inv would check the factorisation on the host, a wait (and no CUDA graph) on a GPU;
+    # the inputs' check has already refused non-finite poses
+    rel = torch.linalg.inv_ex(ego_poses[:, reference : reference + 1].double()).inverse @ ego_poses.double()
     yaw = torch.atan2(rel[..., 1, 0], rel[..., 0, 0])
     return torch.stack([rel[..., 0, 3], rel[..., 1, 3], yaw], dim=-1).to(ego_poses.dtype)
 

@@ -305,7 +305,8 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
                    kOpBwd);
       std::vector<at::Tensor> acts{chunk_features.to(gemm)};  // input of each layer
       for (int64_t l = 0; l + 1 < L; ++l) {
-        acts.push_back(at::addmm(b[l], acts[l], w[l].t()).relu_());
+        // bias and ReLU in the GEMM's epilogue (cuBLASLt) where it can
+        acts.push_back(at::_addmm_activation(b[l], acts[l], w[l].t()));
       }
       at::Tensor g = go.narrow(0, start, count).to(gemm);
       for (int64_t l = L - 1; l >= 0; --l) {
@@ -317,8 +318,8 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
         }
         gb[l].add_(at::sum(g, {0}, false, acc));
         g = at::mm(g, w[l]);
-        // ReLU backward: zero where the layer's output was not positive (NaN included).
-        if (l > 0) g.masked_fill_(acts[l].gt(0).logical_not(), 0);
+        // ReLU backward (one kernel): zero where the layer's output was not positive (NaN included).
+        if (l > 0) g = at::threshold_backward(g, acts[l], 0);
       }
       // g = [count, in0] feature gradient; its first C columns belong to the planes.
       const at::Tensor g_features = g.to(acc).contiguous();

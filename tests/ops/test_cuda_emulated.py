@@ -238,6 +238,20 @@ def test_papers_decoder_size(cuda_ops):
     torch.testing.assert_close(got, want, rtol=1.6e-2, atol=1.6e-2 * want.abs().max().item())
 
 
+def test_wide_inputs_take_smaller_point_tiles(cuda_ops):
+    """Inputs 492 wide with 200 outputs: 128 points would not fit an A100's shared memory, so
+    16-bit operands take tiles of 64 points and TF32 ones tiles of 32, over several blocks."""
+    _, (planes, weights, biases) = decoder(torch.float32, channels=480, hidden=(200,), pe_freqs=2, batch=1,
+                                           device="cpu")
+    points = points_pair(torch.float32, batch=1, n=200, device="cpu")[1]
+    got = decode(cuda_ops, planes, weights, biases, points=points, pe_freqs=2, autocast=torch.bfloat16)
+    want = rounded_decode(*planes, weights, biases, dtype=torch.bfloat16, points=points, pe_freqs=2)
+    torch.testing.assert_close(got, want, rtol=1.6e-2, atol=1.6e-2 * want.abs().max().item())
+    exact = float64_decode(planes, weights, biases, points=points, pe_freqs=2)
+    tf32 = decode(cuda_ops, planes, weights, biases, points=points, pe_freqs=2, tf32=True)
+    torch.testing.assert_close(tf32.double(), exact, rtol=5e-3, atol=5e-3 * exact.abs().max().item())
+
+
 def test_empty_query_launches_nothing(cuda_ops):
     (planes, weights, biases), _ = decoder(torch.float32, device="cpu")
     for state in ({}, {"tf32": True}, {"autocast": torch.bfloat16}):

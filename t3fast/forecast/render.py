@@ -206,18 +206,20 @@ class DrawAgents:
         """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there:
         decoding those voxels alone. Where the host may read (:func:`~t3fast.host_syncs.reads_host`)
         it lists them; elsewhere they are gathered to the front of a frame-sized buffer whose
-        filled length stays on the device, and the decoder decodes that length only."""
-        compact = reads_host(labels.device)
+        filled length stays on the device, and the decoder decodes that length only, every frame
+        of every window in one call."""
+        if not reads_host(labels.device):
+            b, steps = labels.shape[0], len(futures)
+            frames = labels[:, :steps].reshape(b * steps, -1)  # [B * S, N]
+            unseen = frames == IGNORE
+            slot, voxels, count = front_slots(unseen)  # the unseen voxels first, then padding
+            points = voxel_queries(poses[:, :steps].flatten(0, 1).float(), self.decoder.grid, voxels)
+            planes = Triplane.stack(futures).map(lambda p: p.flatten(0, 1))  # frame k of window n at n * S + k
+            decoded = self.decoder.predict(planes, points, live=count)
+            fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1))
+            labels[:, :steps] = torch.where(unseen, fill, frames).view(b, steps, *labels.shape[2:])
+            return
         for k, future in enumerate(futures):
-            if not compact:
-                frames = labels[:, k].flatten(1)  # [B, N]
-                unseen = frames == IGNORE
-                slot, voxels, count = front_slots(unseen)  # the unseen voxels first, then padding
-                points = voxel_queries(poses[:, k].float(), self.decoder.grid, voxels)
-                decoded = self.decoder.predict(future, points, live=count)
-                fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1))
-                frames.copy_(torch.where(unseen, fill, frames))
-                continue
             for n in range(labels.shape[0]):
                 frame = labels[n, k].view(-1)
                 unseen = (frame == IGNORE).nonzero().squeeze(1)

@@ -44,10 +44,11 @@ def reads_host(device: torch.device | str) -> bool:
     return not _sync_free and torch.device(device).type == "cpu"
 
 
-#: aten ops whose output the host reads (a linalg op's error check among them) or whose output's
-#: shape depends on the values
-SYNCING = frozenset({"_local_scalar_dense", "_linalg_check_errors", "equal", "nonzero", "unique", "_unique2",
-                     "unique_dim", "unique_consecutive", "masked_select", "repeat_interleave", "bincount"})
+#: aten ops whose output the host reads (the linalg ops that check their results on the host among
+#: them) or whose output's shape depends on the values
+SYNCING = frozenset({"_local_scalar_dense", "_linalg_check_errors", "_linalg_eigh", "_linalg_svd", "linalg_eig",
+                     "equal", "nonzero", "unique", "_unique2", "unique_dim", "unique_consecutive", "masked_select",
+                     "repeat_interleave", "bincount"})
 
 
 class SyncCounter(TorchDispatchMode):

@@ -136,7 +136,7 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
                                velocity)
     spread_m = offset * VOXEL_SIZE
     cov = slot_sums(spread_m[..., :, None] * spread_m[..., None, :], owner, n)
-    axis = torch.linalg.eigh(cov + 1e-9 * torch.eye(2, dtype=torch.float64, device=cov.device))[1][..., 1]
+    axis = principal_axis(cov)
     column_axis = slot_values(axis, owner)
     along = (spread_m * column_axis).sum(-1).abs()
     across = (spread_m[..., 1] * column_axis[..., 0] - spread_m[..., 0] * column_axis[..., 1]).abs()
@@ -159,6 +159,17 @@ def fit_agent_boxes(frames: Tensor, poses: Tensor, iters: int = FIT_ITERS,
     drawn = (iou >= MIN_FIT_IOU) & (votes.max(-1).values == votes.sum(-1)) & ((match >= 0).sum(-1) >= 2)
     return now, AgentBoxes(centre, velocity, yaw, length, width, *agent_levels(now), now["cls"], drawn & now["valid"],
                            cell_metres(found, poses[..., None, :, :]))
+
+
+def principal_axis(cov: Tensor) -> Tensor:
+    """The unit eigenvector ``[..., 2]`` of the larger eigenvalue of symmetric 2 x 2 matrices
+    ``cov`` ``[..., 2, 2]``, in closed form: at angle ``atan2(2 b, a - c) / 2`` in
+    ``(-pi/2, pi/2]`` (x >= 0), along x where the matrix is isotropic. (``torch.linalg.eigh``
+    picks each vector's sign by its solver, LAPACK's on the CPU and cuSOLVER's on a GPU, and
+    checks its convergence on the host: a wait on a GPU.)"""
+    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    angle = 0.5 * torch.atan2(2 * b, a - c)
+    return torch.stack([angle.cos(), angle.sin()], -1)
 
 
 def _per_slot_max(values: Tensor, owner: Tensor, slots: int) -> Tensor:

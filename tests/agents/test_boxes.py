@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes
+from t3fast.agents.boxes import draw_agent_boxes, fit_agent_boxes, principal_axis
 from t3fast.data.classes import CAR, DRIVEABLE_SURFACE, FREE, PEDESTRIAN, TRAILER, TRUCK, box_footprint
 from t3fast.data.synthetic.render import draw_boxes
 from t3fast.data.synthetic.world import ON_GROUND, z_level
@@ -185,3 +185,18 @@ def test_the_boxes_of_several_windows_at_once_are_each_window_s_alone():
             torch.testing.assert_close(got[b], want, rtol=0, atol=0, equal_nan=True, msg=f.name)
             torch.testing.assert_close(want[:n], exact, rtol=1e-9, atol=1e-9, equal_nan=True, msg=f.name)
         assert fit.drawn[b, :n].any() and not fit.drawn[b, n:].any()
+
+
+def test_principal_axis_is_the_larger_eigenvector_in_closed_form():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1000, 2, 7, generator=g, dtype=torch.float64)
+    cov = x @ x.mT
+    axis = principal_axis(cov)
+    values, vectors = torch.linalg.eigh(cov)
+    torch.testing.assert_close(axis.norm(dim=-1), torch.ones(1000, dtype=torch.float64))
+    torch.testing.assert_close((cov @ axis[..., None])[..., 0], values[..., 1:] * axis)  # cov v = lambda_max v
+    torch.testing.assert_close((axis * vectors[..., 1]).sum(-1).abs(), torch.ones(1000, dtype=torch.float64))
+    assert (axis[..., 0] >= 0).all()  # one sign on every device, whatever the solver would pick
+    # isotropic and axis-aligned spreads
+    spreads = torch.stack([torch.eye(2), torch.diag(torch.tensor([4.0, 1.0])), torch.diag(torch.tensor([1.0, 4.0]))])
+    torch.testing.assert_close(principal_axis(spreads), torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]))

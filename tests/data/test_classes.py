@@ -18,3 +18,5 @@ def test_in_classes_is_isin(dtype, classes):
     got = in_classes(labels, wanted)
     assert got.dtype == torch.bool and got.shape == labels.shape
     assert torch.equal(got, torch.isin(labels.long(), wanted))
+    strided = labels.transpose(1, 3)  # a view that is not contiguous
+    assert torch.equal(in_classes(strided, wanted), torch.isin(strided.long(), wanted))

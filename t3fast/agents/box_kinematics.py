@@ -48,6 +48,7 @@ from t3fast.data.classes import (
     in_classes,
 )
 from t3fast.device_constants import device_constant, made_once
+from t3fast.models.ego_motion import rotate
 
 #: BEV groups of the context map: a column belongs to every group one of its voxels is in
 CONTEXT_GROUPS: tuple[tuple[int, ...], ...] = (
@@ -77,12 +78,6 @@ def ego_step(poses: Tensor) -> Tensor:
     """The ego's last step ``[..., 2]`` (metres, present frame) from the planar poses ``[..., T, 3]``
     of the observed frames in the present frame: from the previous pose to the origin."""
     return -poses[..., -2, :2]
-
-
-def rotate(v: Tensor, angle: Tensor) -> Tensor:
-    """Vectors ``[..., 2]`` turned counter-clockwise by ``angle`` ``[...]``."""
-    c, s = angle.cos(), angle.sin()
-    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
 
 
 def agent_headings(boxes: AgentBoxes) -> Tensor:

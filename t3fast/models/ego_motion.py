@@ -40,6 +40,12 @@ def planar_poses(ego_poses: Tensor, reference: int) -> Tensor:
     return torch.stack([rel[..., 0, 3], rel[..., 1, 3], yaw], dim=-1).to(ego_poses.dtype)
 
 
+def rotate(v: Tensor, angle: Tensor) -> Tensor:
+    """Vectors ``[..., 2]`` turned counter-clockwise by ``angle`` ``[...]``."""
+    c, s = angle.cos(), angle.sin()
+    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], -1)
+
+
 def transform_points(pose: Tensor, points: Tensor) -> Tensor:
     """Points ``[..., 2]`` (x, y, given in the frame at planar ``pose`` ``[..., 3]``) expressed in
     the pose's reference frame, ``[..., 2]``."""
@@ -81,9 +87,7 @@ def extrapolate_poses(past: Tensor, steps: int) -> Tensor:
     # in closed form: step k + 1 moves by the step's translation turned to heading k
     k = torch.arange(steps, device=past.device, dtype=past.dtype)
     heading = present[:, 2:] + k * step[:, 2:]  # [B, steps], unwrapped
-    c, s = torch.cos(heading), torch.sin(heading)
-    moves = torch.stack([c * step[:, :1] - s * step[:, 1:2], s * step[:, :1] + c * step[:, 1:2]], dim=-1)
-    xy = present[:, None, :2] + moves.cumsum(1)
+    xy = present[:, None, :2] + rotate(step[:, None, :2], heading).cumsum(1)
     return torch.cat([xy, wrap_angle(heading + step[:, 2:]).unsqueeze(-1)], dim=-1)
 
 

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from t3fast.models.blocks import group_norm
+from t3fast.models.ego_motion import rotate
 from t3fast.models.triplane import Triplane
 
 
@@ -85,12 +86,6 @@ def _turn(prev: Tensor, last: Tensor, min_step: float) -> Tensor:
     return torch.where(moving, turn, torch.zeros_like(turn))
 
 
-def _turned(v: Tensor, angle: Tensor) -> Tensor:
-    """Vectors ``v`` ``[..., 2]`` turned by ``angle`` ``[...]``."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], dim=-1)
-
-
 def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     """The next displacement ``[B, 2]`` at constant speed and turn rate: the last displacement of
     ``actions`` ``[B, T, 2]`` turned by the angle between the last two (an arc, as the ego
@@ -99,7 +94,7 @@ def continue_motion(actions: Tensor, min_step: float = 0.2) -> Tensor:
     last = actions[:, -1]
     if actions.shape[1] < 2:
         return last
-    return _turned(last, _turn(actions[:, -2], last, min_step))
+    return rotate(last, _turn(actions[:, -2], last, min_step))
 
 
 def constant_turn_rate(past_actions: Tensor, steps: int = 6, min_step: float = 0.2) -> Tensor:
@@ -112,7 +107,7 @@ def constant_turn_rate(past_actions: Tensor, steps: int = 6, min_step: float = 0
         return last.unsqueeze(1).expand(-1, steps, -1).clone()
     turn = _turn(past_actions[:, -2], last, min_step)
     k = torch.arange(1, steps + 1, device=last.device, dtype=last.dtype)
-    return _turned(last.unsqueeze(1), turn.unsqueeze(1) * k)
+    return rotate(last.unsqueeze(1), turn.unsqueeze(1) * k)
 
 
 class MotionPlanner(nn.Module):

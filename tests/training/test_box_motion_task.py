@@ -9,7 +9,7 @@ import json
 import pytest
 import torch
 
-from t3fast.agents.box_kinematics import BOX_CLASSES, STILL_STEP, ego_step, rotate
+from t3fast.agents.box_kinematics import BOX_CLASSES, STILL_STEP, ego_step
 from t3fast.commands.main import main
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
@@ -18,7 +18,7 @@ from t3fast.forecast.agents import fitted_boxes
 from t3fast.host_syncs import SyncCounter, sync_free
 from t3fast.io.checkpoint import load_checkpoint
 from t3fast.models.box_motion import BoxMotionNet, predict_box_poses
-from t3fast.models.ego_motion import planar_poses
+from t3fast.models.ego_motion import planar_poses, rotate
 from t3fast.pretrained import load_world_model
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples, window_record
 from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors

@@ -18,7 +18,7 @@ import copy
 import torch
 from torch import Tensor, nn
 
-from t3fast.agents.box_kinematics import corrected_motion, mirror_kinematics, mirror_views, rotate
+from t3fast.agents.box_kinematics import corrected_motion, mirror_kinematics, mirror_views
 from t3fast.data.synthetic import SyntheticDriving
 from t3fast.data.synthetic.dataset import SPLIT_SIZE
 from t3fast.device_constants import device_constant
@@ -26,6 +26,7 @@ from t3fast.errors import ConfigError
 from t3fast.evaluation.planning import HORIZONS as STEPS_AT
 from t3fast.io.checkpoint import WORLD_MODEL, read_checkpoint
 from t3fast.models.box_motion import BoxMotionNet
+from t3fast.models.ego_motion import rotate
 from t3fast.models.world_model import T3Former
 from t3fast.pretrained import resolve, world_model_from_checkpoint
 from t3fast.training.box_motion.box_cache import BoxCache, BoxMotionSamples

@@ -16,10 +16,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from t3fast.agents.box_kinematics import rotate
 from t3fast.data.classes import GRID_LOWER, GRID_UPPER
 from t3fast.data.sample import PRESENT
 from t3fast.device_constants import device_constant
+from t3fast.models.ego_motion import rotate
 
 
 def plane_cell_centres(shape: tuple[int, int], device: torch.device) -> Tensor:

@@ -11,46 +11,28 @@ namespace {
 
 constexpr int kThreads = 128;
 
-// out = in reversed, through shared memory: right only if __syncthreads really waits.
-__global__ void reverse_kernel(const float* in, float* out) {
-  extern __shared__ __align__(16) unsigned char smem[];
-  float* buf = reinterpret_cast<float*>(smem);
-  const int t = threadIdx.x;
-  buf[t] = in[blockIdx.x * kThreads + t];
-  __syncthreads();
-  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
-}
-
-// The same without the barrier: a race, which the emulator exposes every time (a thread runs
+// out = in reversed, through shared memory: right only if __syncthreads really waits. Without
+// the barrier (`barrier` false) a race, which the emulator exposes every time (a thread runs
 // until it returns, so thread 0 reads slots nobody has written yet).
-__global__ void racy_reverse_kernel(const float* in, float* out) {
+__global__ void reverse_kernel(const float* in, float* out, bool barrier) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* buf = reinterpret_cast<float*>(smem);
   const int t = threadIdx.x;
   buf[t] = in[blockIdx.x * kThreads + t];
+  if (barrier) __syncthreads();
   out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
 }
 
 // out = in reversed, staged in shared memory by asynchronous copies: right only if a copy
-// lands when its thread waits for it and the barrier orders every thread's copy before the reads.
-__global__ void staged_reverse_kernel(const float* in, float* out) {
+// lands when its thread waits for it and the barrier orders every thread's copy before the
+// reads. Without the wait (`wait` false) nothing has landed when the threads read.
+__global__ void staged_reverse_kernel(const float* in, float* out, bool wait) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* buf = reinterpret_cast<float*>(smem);
   const int t = threadIdx.x;
   __pipeline_memcpy_async(buf + t, in + blockIdx.x * kThreads + t, sizeof(float));
   __pipeline_commit();
-  __pipeline_wait_prior(0);
-  __syncthreads();
-  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
-}
-
-// The same without waiting for the copies: nothing has landed when the threads read.
-__global__ void unwaited_reverse_kernel(const float* in, float* out) {
-  extern __shared__ __align__(16) unsigned char smem[];
-  float* buf = reinterpret_cast<float*>(smem);
-  const int t = threadIdx.x;
-  __pipeline_memcpy_async(buf + t, in + blockIdx.x * kThreads + t, sizeof(float));
-  __pipeline_commit();
+  if (wait) __pipeline_wait_prior(0);
   __syncthreads();
   out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
 }
@@ -103,14 +85,11 @@ __global__ void misaligned_kernel() {
 
 // Runs the self-test `name` (see above) on n = blocks * 128 floats of in, out.
 cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks) {
-  if (name == "reverse") {
-    reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
-  } else if (name == "racy_reverse") {
-    racy_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
-  } else if (name == "staged_reverse") {
-    staged_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
-  } else if (name == "unwaited_reverse") {
-    unwaited_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out);
+  if (name == "reverse" || name == "racy_reverse") {
+    reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "reverse");
+  } else if (name == "staged_reverse" || name == "unwaited_reverse") {
+    staged_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out,
+                                                                                    name == "staged_reverse");
   } else if (name == "misaligned_async_copy") {
     misaligned_async_copy_kernel<<<1, kThreads, 64>>>(in);
   } else if (name == "vote") {
@@ -123,7 +102,7 @@ cudaError_t emulator_selftest(const std::string& name, const float* in, float* o
     misaligned_kernel<<<1, 32, 1024>>>();
   } else if (name == "unopted_shared_memory") {
     // 64 KB without cudaFuncSetAttribute: over the default 48 KB limit
-    reverse_kernel<<<1, kThreads, 64 * 1024>>>(in, out);
+    reverse_kernel<<<1, kThreads, 64 * 1024>>>(in, out, true);
   } else {
     return cudaErrorInvalidValue;
   }

@@ -223,14 +223,15 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     (leading dims ``[...]`` on every argument and the result)."""
     lead, (nx, ny, nz) = frame.shape[:-3], frame.shape[-3:]
     steps = shift.shape[-3]
-    frames = frame.masked_fill(agents["mask"], free)[..., None, :, :, :].expand(*lead, steps, nx, ny, nz).clone()
+    emptied = frame.masked_fill(agents["mask"], free)
     if agents["cls"].shape[-1] == 0:
-        return frames
+        return emptied[..., None, :, :, :].expand(*lead, steps, nx, ny, nz).clone()
     slot = (agents["ids"] - 1).clamp(min=0)  # [X, Y]: each column's slot (0 off the agents, masked)
     paste = agents["mask"] if keep is None else agents["mask"] & _gather(keep, slot.flatten(-2)).view(slot.shape)[
         ..., None]
     if not reads_host(frame.device) or lead:
-        return _paste_every_voxel(frame, paste, slot, shift, frames)
+        return _paste_every_voxel(frame, paste, slot, shift, emptied)
+    frames = emptied[None].expand(steps, nx, ny, nz).clone()
     ijz = paste.nonzero()
     moved = ijz[None, :, :2] + shift[:, slot[ijz[:, 0], ijz[:, 1]]]  # [S, V, 2]
     inside = (moved[..., 0] >= 0) & (moved[..., 0] < nx) & (moved[..., 1] >= 0) & (moved[..., 1] < ny)
@@ -241,26 +242,30 @@ def move_agents(frame: Tensor, agents: dict[str, Tensor], shift: Tensor, free: i
     return frames
 
 
-def _paste_every_voxel(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, frames: Tensor) -> Tensor:
+def _paste_every_voxel(frame: Tensor, paste: Tensor, slot: Tensor, shift: Tensor, emptied: Tensor) -> Tensor:
     """:func:`move_agents` over every voxel at once, nothing read on the host (one window's frame
     ``[X, Y, Z]`` or several ``[..., X, Y, Z]``): the voxels ``paste`` of each column's ``slot``
-    ``[..., X, Y]`` moved by its ``shift`` ``[..., S, n, 2]`` into the emptied ``frames``
-    ``[..., S, X, Y, Z]``; each target voxel takes the label of the last source voxel landing on
-    it."""
+    ``[..., X, Y]`` moved by its ``shift`` ``[..., S, n, 2]`` onto the frame with its agents
+    removed, ``emptied``; ``[..., S, X, Y, Z]``. Each target voxel takes the label of the last
+    source voxel landing on it: a voxel keeps its level, so among those the one of the last
+    column, which one ``amax`` over each voxel's key (its column, then its label in the low 8
+    bits) finds, scattered by columns."""
     lead, (nx, ny, nz) = frame.shape[:-3], frame.shape[-3:]
-    windows, steps, voxels = math.prod(lead), shift.shape[-3], nx * ny * nz
+    steps, columns = shift.shape[-3], nx * ny
     device = frame.device
     d = torch.take_along_dim(shift, slot.flatten(-2)[..., None, :, None], dim=-2).view(*lead, steps, nx, ny, 2)
     i = torch.arange(nx, device=device)[:, None] + d[..., 0]
     j = torch.arange(ny, device=device)[None, :] + d[..., 1]
     inside = (i >= 0) & (i < nx) & (j >= 0) & (j < ny)  # [..., S, X, Y]
-    target = (i.clamp(0, nx - 1) * ny + j.clamp(0, ny - 1))[..., None] * nz + torch.arange(nz, device=device)
-    target = target + torch.arange(windows * steps, device=device).view(*lead, steps, 1, 1, 1) * voxels
-    target = torch.where(paste[..., None, :, :, :] & inside[..., None], target, windows * steps * voxels)  # dropped
-    source = torch.arange(windows * voxels, device=device).view(*lead, 1, nx, ny, nz).expand_as(target)
-    winner = torch.full((windows * steps * voxels + 1,), -1, dtype=torch.long, device=device).scatter_reduce_(
-        0, target.flatten(), source.flatten(), "amax")[:-1].view(frames.shape)
-    return torch.where(winner >= 0, frame.flatten()[winner.clamp(min=0)], frames)
+    target = torch.where(inside, i * ny + j, columns).flatten(-2)  # a column beyond the grid: the spare one
+    order = torch.arange(columns, dtype=torch.int32, device=device).view(nx, ny, 1) * 256
+    key = torch.where(paste, order + frame.int(), -1).flatten(-3, -2)[..., None, :, :]  # [..., 1, X * Y, Z]
+    winner = torch.full((*lead, steps, columns + 1, nz), -1, dtype=torch.int32, device=device)
+    winner.scatter_reduce_(-2, target[..., None].expand(*target.shape, nz), key.expand(*lead, steps, columns, nz),
+                           "amax")
+    winner = winner[..., :columns, :].unflatten(-2, (nx, ny))
+    labels = winner.to(torch.uint8).to(emptied.dtype)  # the cast to uint8 keeps the low 8 bits: the label
+    return torch.where(winner >= 0, labels, emptied[..., None, :, :, :])
 
 
 def component_shifts(agents: dict[str, Tensor], displacement: Tensor) -> Tensor:

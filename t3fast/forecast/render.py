@@ -21,7 +21,7 @@ from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE
 from t3fast.forecast.records import AgentMoves, Past, Scene
 from t3fast.host_syncs import reads_host
 from t3fast.models.decoder import TriplaneDecoder
-from t3fast.models.ego_motion import frame_queries, unwarp_sequence, voxel_queries
+from t3fast.models.ego_motion import column_queries, frame_queries, unwarp_sequence, voxel_queries
 from t3fast.models.triplane import Triplane
 
 
@@ -205,18 +205,19 @@ class DrawAgents:
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
         """Where a frame of ``labels`` looks beyond the present grid, what the forecast shows there:
         decoding those voxels alone. Where the host may read (:func:`~t3fast.host_syncs.reads_host`)
-        it lists them; elsewhere they are gathered to the front of a frame-sized buffer whose
-        filled length stays on the device, and the decoder decodes that length only, every frame
-        of every window in one call."""
+        it lists them; elsewhere the columns holding one are gathered to the front of a
+        frame-sized buffer whose filled length stays on the device, and the decoder decodes every
+        level of those columns only, every frame of every window in one call (a voxel decodes the
+        same whatever else is decoded: the labels are the listed voxels')."""
         if not reads_host(labels.device):
-            b, steps = labels.shape[0], len(futures)
-            frames = labels[:, :steps].reshape(b * steps, -1)  # [B * S, N]
+            b, steps, nz = labels.shape[0], len(futures), labels.shape[-1]
+            frames = labels[:, :steps].reshape(b * steps, -1, nz)  # [B * S, X * Y, Z]
             unseen = frames == IGNORE
-            slot, voxels, count = front_slots(unseen)  # the unseen voxels first, then padding
-            points = voxel_queries(poses[:, :steps].flatten(0, 1).float(), self.decoder.grid, voxels)
+            slot, columns, count = front_slots(unseen.any(2))  # the columns with an unseen voxel first
+            points = column_queries(poses[:, :steps].flatten(0, 1).float(), self.decoder.grid, columns)
             planes = Triplane.stack(futures).map(lambda p: p.flatten(0, 1))  # frame k of window n at n * S + k
-            decoded = self.decoder.predict(planes, points, live=count)
-            fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1))
+            decoded = self.decoder.predict(planes, points, live=count * nz).view_as(frames)
+            fill = beyond_present(decoded).gather(1, slot.clamp(max=frames.shape[1] - 1)[..., None].expand_as(frames))
             labels[:, :steps] = torch.where(unseen, fill, frames).view(b, steps, *labels.shape[2:])
             return
         for k, future in enumerate(futures):

@@ -177,12 +177,24 @@ def frame_queries(poses: Tensor, grid: tuple[int, int, int]) -> Tensor:
     coordinates (z fastest, so the result reshapes to ``[B, X, Y, Z]``). Columns beyond the
     forecasting frame's grid take its outermost column: the forecast continues its edge there
     (a road running out of the grid goes on) instead of declaring what it cannot see free."""
-    nx, ny, nz = grid
     x, y, z = _query_axes(poses, grid)
-    b = poses.shape[0]
-    return torch.stack(
-        [x[..., None].expand(b, nx * ny, nz), y[..., None].expand(b, nx * ny, nz), z.expand(b, nx * ny, nz)], -1
-    ).reshape(b, nx * ny * nz, 3)
+    return _column_points(x, y, z)
+
+
+def column_queries(poses: Tensor, grid: tuple[int, int, int], columns: Tensor) -> Tensor:
+    """:func:`frame_queries` of every level of the flat columns ``columns`` ``[B, M]`` (indices
+    into the X * Y columns of each frame): ``[B, M * Z, 3]``, equal to
+    ``frame_queries(poses, grid).view(B, X * Y, Z, 3)[b, columns[b]]`` flattened, without building
+    the other columns' points."""
+    x, y, z = _query_axes(poses, grid)
+    return _column_points(x.gather(1, columns), y.gather(1, columns), z)
+
+
+def _column_points(x: Tensor, y: Tensor, z: Tensor) -> Tensor:
+    """Columns at ``x``, ``y`` ``[B, M]`` times levels at ``z`` ``[Z]``: ``[B, M * Z, 3]``, z fastest."""
+    b, m, nz = *x.shape, z.shape[0]
+    return torch.stack([x[..., None].expand(b, m, nz), y[..., None].expand(b, m, nz), z.expand(b, m, nz)],
+                       -1).view(b, m * nz, 3)
 
 
 def voxel_queries(poses: Tensor, grid: tuple[int, int, int], voxels: Tensor) -> Tensor:

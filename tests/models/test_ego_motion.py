@@ -7,6 +7,7 @@ import torch
 
 from t3fast.data.classes import FREE
 from t3fast.models.ego_motion import (
+    column_queries,
     compose,
     extrapolate_poses,
     frame_queries,
@@ -127,3 +128,14 @@ def test_voxel_queries_are_frame_queries_at_those_voxels(grid):
     voxels = torch.randint(0, grid[0] * grid[1] * grid[2], (500,), generator=torch.Generator().manual_seed(0))
     assert torch.equal(voxel_queries(poses, grid, voxels), frame_queries(poses, grid)[:, voxels])
     assert voxel_queries(poses, grid, voxels[:0]).shape == (2, 0, 3)
+
+
+@pytest.mark.parametrize("grid", [(200, 200, 16), (7, 5, 3)])
+def test_column_queries_are_frame_queries_at_every_level_of_those_columns(grid):
+    poses = torch.tensor([[3.0, 0.5, 0.1], [-2.0, 1.0, -0.3]])
+    nx, ny, nz = grid
+    columns = torch.randint(0, nx * ny, (2, 40), generator=torch.Generator().manual_seed(1))
+    every = frame_queries(poses, grid).view(2, nx * ny, nz, 3)
+    expected = torch.stack([every[b, columns[b]] for b in range(2)]).view(2, 40 * nz, 3)
+    assert torch.equal(column_queries(poses, grid, columns), expected)
+    assert column_queries(poses, grid, columns[:, :0]).shape == (2, 0, 3)

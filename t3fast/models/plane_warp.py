@@ -68,11 +68,12 @@ def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
     it: ``out[:, n]`` is minus the channel-mean absolute difference to ``previous`` shifted by
     the n-th ``(d_i, d_j)`` of ``[-radius, radius]^2`` (row-major), ``[B, (2r+1)^2, H, W]``.
     The best match sits where the content came from: a local, data-independent view of motion."""
-    b, _, h, w = present.shape
+    b, c, h, w = present.shape
     padded = F.pad(previous, (radius,) * 4, mode="replicate")
     size = 2 * radius + 1
     rows = []
     for di in range(size):  # one row of shifts at a time: [B, C, H, size, W] is the largest tensor
         shifted = padded[..., di : di + h, :].unfold(-1, w, 1)  # [B, C, H, size (d_j), W]
-        rows.append(-(present.unsqueeze(3) - shifted).abs().mean(1))  # [B, H, size, W]
-    return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w)
+        rows.append((present.unsqueeze(3) - shifted).abs_().sum(1))  # [B, H, size, W]; abs in place: one pass less
+    # the mean and the sign applied once, to the 1/C-sized result (the same values as -mean per row)
+    return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w).div_(-c)

@@ -12,8 +12,9 @@ from t3fast.host_syncs import reads_host
 
 
 def toss(generator: torch.Generator | None = None) -> bool:
-    """Heads with probability one half, from ``generator`` (None: the global CPU stream)."""
-    return bool(torch.rand((), generator=generator) < 0.5)
+    """Heads with probability one half, from ``generator`` (None: the global CPU stream), drawn on
+    the host whatever the default device."""
+    return bool(torch.rand((), generator=generator, device="cpu") < 0.5)
 
 
 def uniform(shape: tuple[int, ...], device: torch.device, generator: torch.Generator | None = None) -> Tensor:
@@ -21,7 +22,7 @@ def uniform(shape: tuple[int, ...], device: torch.device, generator: torch.Gener
     host may read (:func:`~t3fast.host_syncs.reads_host`: the stream every CPU run has drawn
     from), else on the device from its own generator."""
     if reads_host(device):
-        return torch.rand(shape, generator=generator)
+        return torch.rand(shape, generator=generator, device=device)
     return torch.rand(shape, device=device)
 
 

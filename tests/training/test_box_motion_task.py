@@ -25,8 +25,7 @@ from t3fast.training.box_motion.loss import class_balanced_mean, landing_errors
 from t3fast.training.box_motion.task import BoxMotionTask, agent_errors, mirror_agents
 from t3fast.training.configs import BoxMotionConfig
 
-TINY_BOX = ["data.train_scenes=1", "data.select_scenes=1", "data.frames_per_scene=14", "data.stride=1",
-            "train.batch_size=16", "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+from .tiny_runs import TINY_BOX
 
 
 @pytest.fixture(scope="module")

@@ -26,8 +26,7 @@ from t3fast.training.motion.task import MotionHeadTraining, MotionTask, mirror_l
 from t3fast.training.world_model.motion_loss import AgentTargets, agent_errors, agent_targets, flow_terms
 from t3fast.training.world_model.motion_targets import agent_motion
 
-TINY_MOTION = ["data.train_scenes=1", "data.val_scenes=1", "data.frames_per_scene=14", "data.stride=1",
-               "train.batch_size=2", "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+from .tiny_runs import TINY_MOTION
 
 
 @pytest.fixture(scope="module")

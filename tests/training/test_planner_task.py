@@ -23,8 +23,7 @@ from t3fast.training.planner.plan_cache import PlanCache, PlanWindows
 from t3fast.training.planner.task import PlannerTask, mirror_left_right, plan_summary
 from t3fast.training.world_model.plan_loss import plan_error
 
-TINY_PLAN = ["data.train_scenes=1", "data.val_scenes=1", "data.frames_per_scene=14", "data.stride=1",
-             "train.batch_size=2", "train.log_every=1", "train.eval_every=2", "train.ckpt_every=1"]
+from .tiny_runs import TINY_PLAN
 
 
 def _windows(n: int = 3, seed: int = 0) -> PlanWindows:

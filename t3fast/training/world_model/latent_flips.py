@@ -67,5 +67,5 @@ def random_flips(batch: AlignedBatch, generator: torch.Generator | None = None) 
 
 def draw_flips(generator: torch.Generator | None = None) -> tuple[bool, bool, bool]:
     """One of the eight (flip x, flip y, transpose) of :func:`flip_aligned`, drawn uniformly."""
-    flip_x, flip_y, transpose = (bool(v) for v in torch.randint(0, 2, (3,), generator=generator))
+    flip_x, flip_y, transpose = (bool(v) for v in torch.randint(0, 2, (3,), generator=generator, device="cpu"))
     return flip_x, flip_y, transpose

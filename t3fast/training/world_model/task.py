@@ -200,7 +200,7 @@ class WorldModelTask:
         steps = self.cfg.loss.rollout_steps
         if not 1 <= steps <= NUM_FUTURE:
             raise ValueError(f"loss.rollout_steps must be in [1, {NUM_FUTURE}], got {steps}")
-        return int(torch.randint(0, NUM_FUTURE - steps + 1, ()))
+        return int(torch.randint(0, NUM_FUTURE - steps + 1, (), device="cpu"))
 
     def evaluate(self, model: nn.Module) -> dict[str, float]:
         """Avg mIoU (absent classes skipped), IoU and planning L2 of full rollouts on the val

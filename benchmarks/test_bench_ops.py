@@ -15,6 +15,8 @@ from workloads import (
     DEVICE,
     GRID,
     IMPLS,
+    MATCHING_RADIUS,
+    MATCHING_SHAPE,
     POINTS,
     axis_pool_cost,
     axis_pool_shape,
@@ -23,6 +25,7 @@ from workloads import (
     delta_fuse_shapes,
     label_conv3d_cost,
     make_decode_inputs,
+    matching_costs_cost,
     query_points,
     rounds,
     run_decode,
@@ -177,6 +180,37 @@ def test_delta_fuse_backward(benchmark, impl):
         return torch.autograd.grad(outs, inputs, [torch.ones_like(o) for o in outs])
 
     benchmark.pedantic(synchronized(step), rounds=rounds(30), warmup_rounds=3)
+
+
+def _matching_planes(requires_grad: bool):
+    g = torch.Generator().manual_seed(0)
+    return [torch.randn(*MATCHING_SHAPE, generator=g).tanh().to(DEVICE).requires_grad_(requires_grad)
+            for _ in range(2)]
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_matching_costs(benchmark, impl):
+    """The flow forecaster's two pairs of xy planes, 169 shifts each."""
+    benchmark.group = f"matching_costs {list(MATCHING_SHAPE)} r={MATCHING_RADIUS}"
+    present, previous = _matching_planes(False)
+    op = IMPLS[impl].matching_costs
+    benchmark.extra_info.update(matching_costs_cost())
+    benchmark.pedantic(synchronized(lambda: op(present, previous, MATCHING_RADIUS)), rounds=rounds(20),
+                       warmup_rounds=3)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_matching_costs_backward(benchmark, impl):
+    benchmark.group = f"matching_costs fwd+bwd {list(MATCHING_SHAPE)} r={MATCHING_RADIUS}"
+    present, previous = _matching_planes(True)
+    op = IMPLS[impl].matching_costs
+    benchmark.extra_info.update(matching_costs_cost(backward=True))
+
+    def step():
+        out = op(present, previous, MATCHING_RADIUS)
+        return torch.autograd.grad(out, (present, previous), torch.ones_like(out))
+
+    benchmark.pedantic(synchronized(step), rounds=rounds(10), warmup_rounds=2)
 
 
 def _stem_inputs(channels: int, requires_grad: bool = False):

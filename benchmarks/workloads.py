@@ -164,6 +164,24 @@ def delta_fuse_cost(backward: bool = False) -> dict[str, float]:
     return {"flops": float(flops), "bytes": float(values * FLOAT_BYTES)}
 
 
+#: the flow forecaster's matching costs at batch 1: the pairs (present, previous) and (previous,
+#: the one before) of the shipped model's xy planes, radius 6 (169 shifts)
+MATCHING_SHAPE, MATCHING_RADIUS = (2, 8, 100, 100), 6
+
+
+def matching_costs_cost(backward: bool = False) -> dict[str, float]:
+    """Forward: per output (B * 169 shifts * H * W) a subtraction, an absolute value and an
+    addition per channel; compulsory bytes: both planes read, the costs written. Backward: a
+    sign and a multiply-add per shift, channel and cell for each plane; the upstream gradient
+    and both planes read, both gradients written."""
+    b, c, h, w = MATCHING_SHAPE
+    outputs = b * (2 * MATCHING_RADIUS + 1) ** 2 * h * w
+    flops, values = 3 * outputs * c, 2 * b * c * h * w + outputs
+    if backward:
+        flops, values = flops + 2 * 3 * outputs * c, values + outputs + 4 * b * c * h * w
+    return {"flops": float(flops), "bytes": float(values * FLOAT_BYTES)}
+
+
 def label_conv3d_cost(channels: int, backward: bool = False) -> dict[str, float]:
     """One 200 x 200 x 16 frame, 18 classes. Forward: 27 table rows of ``channels`` values added
     per voxel; bytes: the uint8 labels read, the output written (the table stays in cache).

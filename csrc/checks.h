@@ -151,6 +151,47 @@ inline DeltaFuseShape check_delta_fuse_backward(const at::Tensor& grad_out,
   return {prev.size(0), weight.size(0), prev.size(1), prev.size(2), prev.size(3)};
 }
 
+// Sizes of matching_costs: present and previous [B, C, H, W], shifts (2 radius + 1)^2.
+struct MatchingCostsShape {
+  int64_t B, C, H, W, radius, shifts;
+};
+
+// matching_costs: present and previous [B, C, H, W] (at least one channel), radius >= 0.
+inline MatchingCostsShape check_matching_costs(const at::Tensor& present,
+                                               const at::Tensor& previous, int64_t radius,
+                                               const char* op) {
+  check_dim(present, op, "present", 4, "[B, C, H, W]");
+  check_dim(previous, op, "previous", 4, "[B, C, H, W]");
+  check_float_dtype(present, op, "present");
+  check_same_device(previous, present, op, "previous", "present");
+  check_same_dtype(previous, present, op, "previous", "present");
+  T3FAST_CHECK(previous.sizes() == present.sizes(), op,
+               "previous must have the shape of present ", present.sizes(), ", got ",
+               previous.sizes());
+  T3FAST_CHECK(present.size(1) > 0, op,
+               "present must have at least one channel (the costs are channel means), got shape ",
+               present.sizes());
+  T3FAST_CHECK(radius >= 0 && radius <= 64, op, "radius must be in [0, 64], got ", radius);
+  return {present.size(0), present.size(1), present.size(2), present.size(3), radius,
+          (2 * radius + 1) * (2 * radius + 1)};
+}
+
+// matching_costs_backward: grad [B, (2 radius + 1)^2, H, W] against present and previous.
+inline MatchingCostsShape check_matching_costs_backward(const at::Tensor& grad,
+                                                        const at::Tensor& present,
+                                                        const at::Tensor& previous,
+                                                        int64_t radius, const char* op) {
+  const MatchingCostsShape s = check_matching_costs(present, previous, radius, op);
+  check_dim(grad, op, "grad", 4, "[B, (2 radius + 1)^2, H, W]");
+  check_same_device(grad, present, op, "grad", "present");
+  check_same_dtype(grad, present, op, "grad", "present");
+  check_size(grad, op, "grad", 0, s.B, "batch, as present");
+  check_size(grad, op, "grad", 1, s.shifts, "the (2 radius + 1)^2 shifts");
+  check_size(grad, op, "grad", 2, s.H, "H, as present");
+  check_size(grad, op, "grad", 3, s.W, "W, as present");
+  return s;
+}
+
 // Sizes of label_conv3d: labels [B, X, Y, Z], table [27, K, C].
 struct LabelConvShape {
   int64_t B, X, Y, Z, K, C;

@@ -35,6 +35,15 @@ TORCH_LIBRARY(t3fast, m) {
   m.def(
       "delta_fuse_backward(Tensor grad_out, Tensor prev, Tensor weight) "
       "-> (Tensor, Tensor, Tensor)");
+  // How well each cell of present [B, C, H, W] matches the cells of previous [B, C, H, W] around
+  // it: out[b, n, i, j] = -(1/C) sum over c of |present[b, c, i, j] - previous[b, c, i', j']|,
+  // i' = clamp(i + n / (2r + 1) - r), j' = clamp(j + n % (2r + 1) - r) (replicate padding), for
+  // the (2r + 1)^2 shifts n of radius r. Returns [B, (2r + 1)^2, H, W].
+  m.def("matching_costs(Tensor present, Tensor previous, int radius) -> Tensor");
+  // -> (grad_present, grad_previous) from grad [B, (2r + 1)^2, H, W].
+  m.def(
+      "matching_costs_backward(Tensor grad, Tensor present, Tensor previous, int radius) "
+      "-> (Tensor, Tensor)");
   // out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :] (zero outside the
   // volume): a 3 x 3 x 3 convolution of the class-embedded labels. labels [B, X, Y, Z] -> out
   // [B, C, X, Y, Z]; table [27, K, C], taps in (dx, dy, dz) order, each from -1 to 1.

@@ -224,6 +224,22 @@ cudaError_t delta_fuse_backward(const T* grad_out, const T* prev, const T* weigh
                                 int64_t batch, int c_out, int c_in, int64_t pixels, T* grad_prev,
                                 acc_t<T>* grad_weight, acc_t<T>* grad_bias, cudaStream_t stream);
 
+// ------------------------------------------------------------------ matching_costs
+
+// out [batch, (2 radius + 1)^2, h, w]: minus the channel mean of |present - previous shifted|
+// for each shift (replicate padding), present and previous [batch, channels, h, w].
+template <typename T>
+cudaError_t matching_costs_forward(const T* present, const T* previous, int64_t batch,
+                                   int channels, int h, int w, int radius, T* out,
+                                   cudaStream_t stream);
+
+// grad_present and grad_previous [batch, channels, h, w] from grad [batch, shifts, h, w]; each
+// value written by one thread (no atomics: deterministic).
+template <typename T>
+cudaError_t matching_costs_backward(const T* grad, const T* present, const T* previous,
+                                    int64_t batch, int channels, int h, int w, int radius,
+                                    T* grad_present, T* grad_previous, cudaStream_t stream);
+
 // ------------------------------------------------------------------ label_conv3d
 
 // out [batch, channels, x, y, z] = sum over the 27 taps t (dx, dy, dz each -1..1, dx slowest)

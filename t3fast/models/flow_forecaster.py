@@ -17,7 +17,7 @@ motion is represented as motion, the way a tracker does it:
   or a per-cell correction from it, fitted the training windows and lowered validation;
 * one UNet reads the history of xy planes, their differences, *matching costs* (how well each
   present cell matches each cell around it in the previous frame, and the previous in the one
-  before: :func:`~t3fast.models.plane_warp.matching_costs`) and the velocities, and predicts a
+  before: :func:`~t3fast.ops.matching_costs`) and the velocities, and predicts a
   change Delta for every future step (zero at the start);
 * the present plane is moved accordingly: the displacements of the moving cells are splatted
   forward (:func:`~t3fast.models.plane_warp.splat_plane`) into a backward flow at the cells
@@ -47,9 +47,9 @@ from torch.nn import functional as F
 from t3fast.agents.tracker import VELOCITY_CHANNELS, blended_velocity
 from t3fast.models.blocks import group_norm
 from t3fast.models.motion_head import ContextMotionHead
-from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
+from t3fast.models.plane_warp import splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
-from t3fast.ops import delta_fuse
+from t3fast.ops import delta_fuse, matching_costs
 
 
 def _block(cin: int, cout: int, stride: int = 1, convs: int = 2) -> nn.Sequential:

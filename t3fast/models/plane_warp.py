@@ -1,4 +1,4 @@
-"""Moving a feature plane by a flow field, and finding motion between planes: the flow forecaster's parts.
+"""Moving a feature plane by a flow field (a backward lookup, and forward splatting): the flow forecaster's parts.
 
 A flow is backward: ``flow[:, :, i, j]`` says where, in plane cells, the content that ends up
 at cell ``(i, j)`` comes from (``(d_i, d_j)``, along dims -2 and -1 of the plane), so the
@@ -61,19 +61,3 @@ def splat_plane(values: Tensor, displacement: Tensor) -> Tensor:
     spread = (values.reshape(b, v, 1, h * w) * weight).reshape(b, v, 4 * h * w)
     out = values.new_zeros(b, v, h * w).scatter_add(2, index.expand(-1, v, -1), spread)
     return out.view(b, v, h, w)
-
-
-def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
-    """How well each cell of ``present`` ``[B, C, H, W]`` matches the cells of ``previous`` around
-    it: ``out[:, n]`` is minus the channel-mean absolute difference to ``previous`` shifted by
-    the n-th ``(d_i, d_j)`` of ``[-radius, radius]^2`` (row-major), ``[B, (2r+1)^2, H, W]``.
-    The best match sits where the content came from: a local, data-independent view of motion."""
-    b, c, h, w = present.shape
-    padded = F.pad(previous, (radius,) * 4, mode="replicate")
-    size = 2 * radius + 1
-    rows = []
-    for di in range(size):  # one row of shifts at a time: [B, C, H, size, W] is the largest tensor
-        shifted = padded[..., di : di + h, :].unfold(-1, w, 1)  # [B, C, H, size (d_j), W]
-        rows.append((present.unsqueeze(3) - shifted).abs_().sum(1))  # [B, H, size, W]; abs in place: one pass less
-    # the mean and the sign applied once, to the 1/C-sized result (the same values as -mean per row)
-    return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w).div_(-c)

@@ -20,7 +20,7 @@ from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
 __all__ = ["axis_pool", "bev_components", "box_fit", "build_info", "delta_fuse", "draw_boxes", "label_conv3d",
-           "reference", "triplane_decode"]
+           "matching_costs", "reference", "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -161,6 +161,31 @@ def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None 
         _checks.check_delta_fuse(delta, prev, weight, bias)
         return reference.delta_fuse(delta, prev, weight, bias)
     return ops.delta_fuse.default(delta, prev, weight, bias)
+
+
+def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
+    """How well each cell of ``present`` matches the cells of ``previous`` around it (a local
+    cost volume): ``out[:, n]`` is minus the channel-mean absolute difference to ``previous``
+    shifted by the n-th ``(d_i, d_j)`` of ``[-radius, radius]^2`` (row-major; replicate padding
+    at the edges). The best match sits where the content came from: a local view of motion.
+
+    One pass over the planes: no ``[B, C, H, 2r + 1, W]`` difference tensor in memory, as the
+    reference (:func:`t3fast.ops.reference.matching_costs`) needs for each row of shifts.
+
+    Args:
+        present: ``[B, C, H, W]``, at least one channel; float32/float64 (on CUDA also
+            float16/bfloat16, accumulated in float32).
+        previous: ``[B, C, H, W]``, as ``present``.
+        radius: the largest shift, 0 to 64.
+
+    Returns:
+        ``[B, (2 radius + 1)^2, H, W]`` in the inputs' dtype. Differentiable with respect to
+        both planes (the subgradient 0 where two values tie, as ``abs``).
+    """
+    if ops is None:
+        _checks.check_matching_costs(present, previous, radius)
+        return reference.matching_costs(present, previous, radius)
+    return ops.matching_costs.default(present, previous, radius)
 
 
 def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:

@@ -203,6 +203,20 @@ def check_delta_fuse(delta: torch.Tensor, prev: torch.Tensor, weight: torch.Tens
         _check_size(bias, op, "bias", 0, delta.shape[1], "C, as delta.shape[1]")
 
 
+def check_matching_costs(present: torch.Tensor, previous: torch.Tensor, radius: int) -> None:
+    """matching_costs' arguments, as csrc/checks.h checks them."""
+    op = "matching_costs"
+    _check_dim(present, op, "present", 4, "[B, C, H, W]")
+    _check_dim(previous, op, "previous", 4, "[B, C, H, W]")
+    _check_float(present, op, "present")
+    _check_like(previous, present, op, "previous", "present")
+    _require(previous.shape == present.shape, op,
+             f"previous must have the shape of present {list(present.shape)}, got {list(previous.shape)}")
+    _require(present.shape[1] > 0, op, "present must have at least one channel (the costs are channel means), "
+             f"got shape {list(present.shape)}")
+    _require(0 <= radius <= 64, op, f"radius must be in [0, 64], got {radius}")
+
+
 def check_label_conv3d(labels: torch.Tensor, table: torch.Tensor) -> None:
     """label_conv3d's arguments, as csrc/checks.h checks them (and the CPU kernel the labels)."""
     op = "label_conv3d"

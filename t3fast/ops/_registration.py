@@ -2,8 +2,9 @@
 trace the ops, and autograd formulas whose backward passes are themselves registered ops.
 
 Higher-order gradients: ``axis_pool`` and ``delta_fuse`` are (bi)linear, so their backward ops
-are differentiable too (to any order). ``triplane_decode``'s backward op is not: differentiating
-through it raises a ``RuntimeError`` pointing at the reference, never a silent zero.
+are differentiable too (to any order). ``triplane_decode``'s and ``matching_costs``' backward ops
+are not: differentiating through them raises a ``RuntimeError`` pointing at the reference, never
+a silent zero.
 
 Imported only once :mod:`t3fast.ops._extension` has loaded the extension, which defines the
 ops' schemas."""
@@ -225,6 +226,48 @@ def _delta_fuse_backward_backward(ctx, gg_prev, gg_weight, gg_bias):
 torch.library.register_autograd(
     "t3fast::delta_fuse_backward", _delta_fuse_backward_backward, setup_context=_delta_fuse_backward_setup
 )
+
+
+# ---------------------------------------------------------------- matching_costs
+@torch.library.register_fake("t3fast::matching_costs")
+def _matching_costs_fake(present, previous, radius):
+    torch._check(present.dim() == 4, lambda: f"present must have 4 dims, got {present.dim()}")
+    _check_like("matching_costs", "present", present, previous=previous)
+    torch._check(previous.shape == present.shape,
+                 lambda: f"t3fast.matching_costs: previous must have the shape of present {list(present.shape)}, "
+                 f"got {list(previous.shape)}")
+    b, _, h, w = present.shape
+    return present.new_empty((b, (2 * radius + 1) ** 2, h, w))
+
+
+@torch.library.register_fake("t3fast::matching_costs_backward")
+def _matching_costs_backward_fake(grad, present, previous, radius):
+    _check_like("matching_costs_backward", "present", present, grad=grad, previous=previous)
+    return torch.empty_like(present), torch.empty_like(previous)
+
+
+def _matching_costs_setup(ctx, inputs, output):
+    present, previous, ctx.radius = inputs
+    ctx.save_for_backward(present, previous)
+
+
+def _matching_costs_backward(ctx, grad):
+    present, previous = ctx.saved_tensors
+    grad_present, grad_previous = ops.matching_costs_backward.default(grad, present, previous, ctx.radius)
+    return grad_present, grad_previous, None
+
+
+torch.library.register_autograd("t3fast::matching_costs", _matching_costs_backward,
+                                setup_context=_matching_costs_setup)
+
+
+def _matching_costs_double_backward(ctx, *grads):
+    raise RuntimeError("t3fast.matching_costs: double backward is not supported; use "
+                       "t3fast.ops.reference.matching_costs for higher-order gradients")
+
+
+torch.library.register_autograd("t3fast::matching_costs_backward", _matching_costs_double_backward,
+                                setup_context=_no_setup)
 
 
 # ---------------------------------------------------------------- label_conv3d

@@ -137,6 +137,20 @@ def delta_fuse(delta: Tensor, prev: Tensor, weight: Tensor, bias: Tensor | None 
     return out
 
 
+def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
+    """:func:`t3fast.ops.matching_costs` one row of shifts at a time: ``[B, C, H, 2r + 1, W]``
+    differences in memory per row."""
+    b, c, h, w = present.shape
+    padded = F.pad(previous, (radius,) * 4, mode="replicate")
+    size = 2 * radius + 1
+    rows = []
+    for di in range(size):
+        shifted = padded[..., di : di + h, :].unfold(-1, w, 1)  # [B, C, H, size (d_j), W]
+        rows.append((present.unsqueeze(3) - shifted).abs_().sum(1))  # [B, H, size, W]
+    # the channel mean's division and sign applied once, to the 1/C-sized result
+    return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w).div_(-c)
+
+
 def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
     """``out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :]`` (nothing from
     outside the volume): ``labels [B, X, Y, Z]`` (class ids in ``[0, K)``), ``table [27, K, C]``

@@ -11,7 +11,7 @@ import torch
 from t3fast.forecast.records import Agents, Past, Scene
 from t3fast.forecast.render import DecodeFrames, KeepObservedStatic, observed_static, present_in_frames
 from t3fast.models.flow_forecaster import MOVING_CELLS, FlowTriplaneForecaster, move_plane
-from t3fast.models.plane_warp import matching_costs, splat_plane, warp_plane
+from t3fast.models.plane_warp import splat_plane, warp_plane
 from t3fast.models.triplane import Triplane
 
 
@@ -103,35 +103,6 @@ def test_splat_refuses_a_displacement_of_the_wrong_shape():
     message = r"splat_plane: displacement must have shape \[1, 2, 6, 7\], got \[1, 2, 7, 6\]"
     with pytest.raises(ValueError, match=message):
         splat_plane(torch.zeros(1, 3, 6, 7), torch.zeros(1, 2, 7, 6))
-
-
-def test_matching_costs_follow_their_definition():
-    torch.manual_seed(0)
-    present, previous = torch.randn(2, 3, 7, 6), torch.randn(2, 3, 7, 6)
-    costs = matching_costs(present, previous, 2)
-    assert costs.shape == (2, 25, 7, 6)
-    padded = torch.nn.functional.pad(previous, (2, 2, 2, 2), mode="replicate")
-    for di, dj, i, j in [(-2, -2, 0, 0), (1, -1, 3, 2), (2, 2, 6, 5), (0, 0, 4, 4), (-1, 2, 1, 5)]:
-        n = (di + 2) * 5 + (dj + 2)
-        other = padded[:, :, i + di + 2, j + dj + 2]  # previous at (i + di, j + dj), the edge continuing
-        assert torch.allclose(costs[:, n, i, j], -(present[:, :, i, j] - other).abs().mean(1))
-    # the edge continues: at the corner the shift (-2, -2) compares with previous[0, 0]
-    assert torch.allclose(costs[:, 0, 0, 0], -(present[:, :, 0, 0] - previous[:, :, 0, 0]).abs().mean(1))
-    assert torch.allclose(matching_costs(present, previous, 0)[:, 0], -(present - previous).abs().mean(1))
-
-
-def test_matching_costs_find_where_the_content_came_from():
-    torch.manual_seed(0)
-    r, (di, dj) = 3, (2, -1)
-    previous = torch.randn(1, 4, 12, 13)
-    present = torch.roll(previous, shifts=(-di, -dj), dims=(-2, -1))  # present[i, j] = previous[i + di, j + dj]
-    costs = matching_costs(present, previous, r)
-    n = (di + r) * (2 * r + 1) + (dj + r)
-    inner = (slice(None), slice(r, 12 - r), slice(r, 13 - r))  # no wrap-around there
-    assert torch.allclose(costs[:, n][inner], torch.tensor(0.0), atol=1e-6)
-    assert (costs.argmax(1)[inner] == n).all()
-    assert (costs[:, n][inner] > costs.amax(1)[inner] - 1e-6).all()
-    assert (costs.amax(1) <= 0).all()
 
 
 def test_moving_nothing_leaves_the_plane_as_it_is():

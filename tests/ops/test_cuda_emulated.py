@@ -344,6 +344,29 @@ def test_delta_fuse(cuda_ops, dtype, c_out, c_in, with_bias):
         assert_same(a.float(), e, rtol=tol, atol_scale=tol)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("shape, radius", [((2, 8, 20, 18), 6), ((1, 3, 7, 5), 2), ((2, 5, 1, 9), 3),
+                                           ((1, 4, 6, 1), 4), ((1, 1, 1, 1), 1)])
+def test_matching_costs(cuda_ops, dtype, shape, radius):
+    """Forward and backward: the channels and shifts summed in the CPU kernel's order, so float32
+    and float64 are its results bit for bit; float16 / bfloat16 accumulate in float32 (one
+    rounding of the result)."""
+    g = torch.Generator().manual_seed(0)
+    (present, present32), (previous, previous32) = (lowp_pair(torch.randn(shape, generator=g), dtype, "cpu")
+                                                    for _ in range(2))
+    grad, grad32 = lowp_pair(torch.randn(shape[0], (2 * radius + 1) ** 2, *shape[2:], generator=g), dtype, "cpu")
+    got = cuda_ops.matching_costs(present, previous, radius)
+    got_grads = cuda_ops.matching_costs_backward(grad, present, previous, radius)
+    if dtype in TOLERANCE:
+        want = torch.ops.t3fast.matching_costs(present32, previous32, radius)
+        want_grads = torch.ops.t3fast.matching_costs_backward(grad32, present32, previous32, radius)
+        for a, e in zip((got, *got_grads), (want, *want_grads)):
+            assert_close_lowp(a, e, dtype)
+    else:
+        assert_same(got, torch.ops.t3fast.matching_costs(present, previous, radius))
+        assert_same(got_grads, torch.ops.t3fast.matching_costs_backward(grad, present, previous, radius))
+
+
 @pytest.mark.parametrize("label_dtype", [torch.uint8, torch.int32, torch.int64])
 @pytest.mark.parametrize("shape, classes, channels", [((2, 12, 10, 6), 18, 8), ((1, 5, 1, 9), 3, 13),
                                                       ((1, 1, 1, 1), 2, 1)])

@@ -55,6 +55,14 @@ with warnings.catch_warnings(record=True) as caught:
         assert torch.equal(got, want)
     delta, prev, weight, bias = torch.randn(2, 4, 5, 6), torch.randn(2, 3, 5, 6), torch.randn(4, 3), torch.randn(4)
     assert torch.equal(t3fast.delta_fuse(delta, prev, weight, bias), reference.delta_fuse(delta, prev, weight, bias))
+    present, previous = torch.randn(2, 3, 5, 4), torch.randn(2, 3, 5, 4)
+    assert torch.equal(t3fast.ops.matching_costs(present, previous, 2), reference.matching_costs(present, previous, 2))
+    try:
+        t3fast.ops.matching_costs(present, previous[:, :2], 2)
+    except RuntimeError as exc:
+        assert "t3fast.matching_costs: previous must have the shape of present [2, 3, 5, 4]" in str(exc), exc
+    else:
+        raise AssertionError("a channel mismatch was accepted")
 
     # a model on the ops, against the same model on the reference decoder
     torch.manual_seed(0)

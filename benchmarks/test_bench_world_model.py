@@ -2,8 +2,9 @@
 labels and poses to the future labels and plan: encoding the five past frames, the agents (the
 tracker, the box fit), the forecaster, the planner, the render. The shipped weights, a
 validation window, the compiled operators versus their pure-PyTorch references (the encoder's
-stem, the decoder and the delta fusion); FPS = 1 / time. ``wm-small`` is the shipped model, ``wm-small-own-frames`` the
-papers' formulation (the Delta forecaster, every frame in its own ego frame)."""
+stem, the decoder, the delta fusion and the matching costs); FPS = 1 / time. ``wm-small`` is the
+shipped model, ``wm-small-own-frames`` the papers' formulation (the Delta forecaster, every frame
+in its own ego frame)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import t3fast.models.flow_forecaster as flow_module
 import t3fast.models.forecaster as forecaster_module
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.ops import delta_fuse, reference
+from t3fast.ops import delta_fuse, matching_costs, reference
 from t3fast.pretrained import load_world_model
 
 
@@ -26,6 +27,7 @@ def test_whole_forecast(benchmark, impl, name, monkeypatch):
     fuse = delta_fuse if impl == "fused" else reference.delta_fuse
     for module in (forecaster_module, flow_module):
         monkeypatch.setattr(module, "delta_fuse", fuse)
+    monkeypatch.setattr(flow_module, "matching_costs", matching_costs if impl == "fused" else reference.matching_costs)
     sample = SyntheticDriving("val", 1, 20, stride=9)[0]
     occ, poses = sample.occ[None, : PRESENT + 1], sample.ego_poses[None, : PRESENT + 1]
     benchmark.pedantic(lambda: model.forecast(occ, poses), rounds=5, warmup_rounds=1)

@@ -78,16 +78,24 @@ def build(size: str, device: torch.device, batch: int):
 
 @contextlib.contextmanager
 def reference_ops(model):
-    """The decoder and the forecaster's delta fusion on the pure-PyTorch references."""
+    """The encoder's stem, the decoder, the forecasters' delta fusion and the flow forecaster's
+    matching costs on the pure-PyTorch references."""
+    import t3fast.models.flow_forecaster as flow_module
     import t3fast.models.forecaster as forecaster_module
     from t3fast.ops import reference
 
-    fused_delta_fuse, backend = forecaster_module.delta_fuse, model.decoder.backend
-    forecaster_module.delta_fuse, model.decoder.backend = reference.delta_fuse, "reference"
+    swapped = [(forecaster_module, "delta_fuse"), (flow_module, "delta_fuse"), (flow_module, "matching_costs")]
+    fused = [getattr(module, name) for module, name in swapped]
+    backends = model.decoder.backend, model.encoder.backend
+    for module, name in swapped:
+        setattr(module, name, getattr(reference, name))
+    model.decoder.backend = model.encoder.backend = "reference"
     try:
         yield
     finally:
-        forecaster_module.delta_fuse, model.decoder.backend = fused_delta_fuse, backend
+        for (module, name), op in zip(swapped, fused):
+            setattr(module, name, op)
+        model.decoder.backend, model.encoder.backend = backends
 
 
 def step_function(model, occupancy, poses, mode: str, device: torch.device):

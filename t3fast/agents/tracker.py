@@ -177,7 +177,7 @@ def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], ga
         return torch.full(present["cls"].shape, -1, dtype=torch.long, device=present["cls"].device)
     dist = (present["centroid"][..., :, None, :] - previous["centroid"][..., None, :, :]).norm(dim=-1)
     nearest, match = dist.masked_fill(_unmatchable(present["cls"], previous), math.inf).min(-1)
-    return torch.where(nearest <= gate_cells, match, torch.full_like(match, -1))
+    return torch.where(nearest <= gate_cells, match, -1)
 
 
 def _unmatchable(cls: Tensor, candidates: dict[str, Tensor]) -> Tensor:
@@ -424,6 +424,6 @@ def follow_agents(agents: list[dict[str, Tensor]], poses: Tensor) -> Tensor:
         there = torch.take_along_dim(found, index[..., None], dim=-2)
         velocity = torch.where(ok[..., None], position - there, velocity)
         position = torch.where(ok[..., None], there, position)
-        gate = torch.where(ok, torch.full_like(gate, FOLLOW_GATE), gate)
+        gate = torch.where(ok, FOLLOW_GATE, gate)
         alive &= ok
     return match

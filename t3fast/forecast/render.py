@@ -76,7 +76,7 @@ def decode_where(decoder: TriplaneDecoder, planes: Triplane, points: Tensor, mas
 def beyond_present(decoded: Tensor) -> Tensor:
     """What a forecast shows beyond the observed present grid: its decoded flat ground (roads
     and sidewalks go on), everything else free."""
-    return torch.where(in_classes(decoded, FLAT_GROUND_CLASSES), decoded, torch.full_like(decoded, FREE))
+    return torch.where(in_classes(decoded, FLAT_GROUND_CLASSES), decoded, FREE)
 
 
 class DecodeFrames:

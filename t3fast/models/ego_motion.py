@@ -153,7 +153,7 @@ def warp_volume(volume: Tensor, target_in_source: Tensor, fill: int = FREE) -> T
     index, inside = column_index(target_in_source, (nx, ny))
     flat = volume.reshape(b, nx * ny, -1)
     out = torch.gather(flat, 1, index[..., None].expand(-1, -1, flat.shape[-1]))
-    out = torch.where(inside[..., None], out, torch.full_like(out, fill))
+    out = torch.where(inside[..., None], out, fill)
     return out.view(volume.shape)
 
 

@@ -47,7 +47,7 @@ def drop_commands(command: Tensor, share: float, generator: torch.Generator | No
     """Route commands ``[B]`` with each replaced by -1 (none) with probability ``share``, drawn
     as :func:`~t3fast.training.step_draws.uniform` draws them."""
     dropped = uniform(command.shape, command.device, generator) < share
-    return torch.where(dropped, torch.full_like(command, -1), command)
+    return torch.where(dropped, -1, command)
 
 
 def plan_error(planned: Tensor, future_actions: Tensor) -> Tensor:

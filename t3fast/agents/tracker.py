@@ -154,19 +154,25 @@ def _class_votes(frame: Tensor, ids: Tensor, is_agent: Tensor, slots: int) -> Te
     agents' voxels of one frame (found on the host: a few percent of it), elsewhere from every
     voxel (nothing waits for the device)."""
     lead = frame.shape[:-3]
-    votes = ids.new_zeros(*lead, slots + 1, NUM_CLASSES)
     if reads_host(frame.device) and not lead:
+        votes = ids.new_zeros(slots + 1, NUM_CLASSES)
         ijz = is_agent.nonzero()
         label = frame[is_agent].long()
         votes.index_put_((ids[ijz[:, 0], ijz[:, 1]] - 1, label), torch.ones_like(label), accumulate=True)
-    else:  # int32 voxel indices: half the memory traffic of a batch's frames
-        slot = torch.where(is_agent, ids.int()[..., None] - 1, slots)
-        if lead:  # each frame's slots after the last frame's
-            frames = torch.arange(math.prod(lead), dtype=torch.int32, device=frame.device)
-            slot += frames.view(*lead, 1, 1, 1) * (slots + 1)
-        votes.view(-1).index_add_(0, (slot * NUM_CLASSES + frame).flatten(),
-                                  torch.ones(1, dtype=torch.long, device=frame.device).expand(frame.numel()))
-    return votes[..., :slots, :]
+        return votes[:slots]
+    # each voxel votes in its column's row (the spare row `slots` off the agents) for its label,
+    # or for the extra class NUM_CLASSES where it is no agent voxel: int32 keys made per column
+    # and then in one pass over the voxels (the labels never index past their row)
+    classes = NUM_CLASSES + 1
+    row = torch.where(ids > 0, ids.int() - 1, slots)
+    if lead:  # each frame's rows after the last frame's
+        first = torch.arange(math.prod(lead), dtype=torch.int32, device=frame.device) * (slots + 1)
+        row = row + first.view(*lead, 1, 1)
+    key = (row * classes)[..., None] + torch.where(is_agent, frame, NUM_CLASSES)
+    votes = ids.new_zeros(*lead, slots + 1, classes)
+    one = torch.ones(1, dtype=torch.long, device=frame.device)
+    votes.view(-1).index_add_(0, key.flatten(), one.expand(key.numel()))
+    return votes[..., :slots, :NUM_CLASSES]
 
 
 def match_components(present: dict[str, Tensor], previous: dict[str, Tensor], gate_cells: float) -> Tensor:

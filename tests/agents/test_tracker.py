@@ -221,6 +221,24 @@ def test_the_frames_of_several_windows_at_once_are_each_frame_alone():
         frame_agents(frames, classes)
 
 
+def test_unobserved_voxels_vote_for_no_class_in_fixed_slots():
+    """Frames with unobserved voxels (255, also in agents' columns and in the last frame, whose
+    rows end the votes): each frame's agents in slots are those of the frame alone."""
+    from t3fast.agents.tracker import frame_agents, frame_of
+    from t3fast.data.classes import AGENT_CLASSES, IGNORE
+
+    frames = torch.stack([_busy_frame(7), _busy_frame(8)])
+    frames[..., -1] = IGNORE
+    frames[1, :20, :, 4] = IGNORE
+    classes = torch.tensor(AGENT_CLASSES, dtype=torch.uint8)
+    every = frame_agents(frames, classes, slots=40)
+    for b in range(2):
+        alone, got = frame_agents(frames[b], classes, slots=40), frame_of(every, b)
+        for key in ("ids", "mask", "valid", "cls", "votes"):
+            assert torch.equal(got[key], alone[key]), (b, key)
+    assert int(every["votes"].sum()) == int(every["mask"].sum()) > 0
+
+
 def test_moving_several_windows_agents_at_once_is_each_window_alone():
     from t3fast.agents.tracker import frame_agents, frame_of, move_agents
     from t3fast.data.classes import AGENT_CLASSES

@@ -156,7 +156,7 @@ def crop_context(context: Tensor, centre: Tensor, heading: Tensor) -> Tensor:
     along = -CROP_BEHIND + CROP_CELL * (torch.arange(CROP[0], **cells) + 0.5)
     across = CROP_CELL * (torch.arange(CROP[1], **cells) - (CROP[1] - 1) / 2)
     local = torch.stack(torch.meshgrid(along, across, indexing="ij"), -1)  # [A, W, 2]
-    h = heading.float().to(context.device)[..., None, None].expand(*heading.shape, *CROP)
+    h = heading.float().to(context.device)[..., None, None]  # broadcast: one cosine and sine per agent
     points = rotate(local.expand(*lead, n, -1, -1, -1), h) + centre.float().to(context.device)[..., None, None, :]
     last = device_constant([s - 1 for s in context.shape[-2:]], torch.float32, context.device)
     cells = (points - device_constant(GRID_LOWER[:2], torch.float32, context.device)) / VOXEL_SIZE - 0.5

@@ -93,64 +93,70 @@ void forward(const T* p, const T* q, T* out, const MatchingCostsShape& s) {
   });
 }
 
-// grad_present[b, c, i, :] = -(1/C) sum over the shifts of grad * sign(present - shifted).
+// acc = sum over the shifts of grad * sign(present - shifted) along row i of plane bc: the row's
+// grad_present times -C.
 template <typename T>
-void present_grad(const T* g, const T* p, const T* q, T* gp, const MatchingCostsShape& s) {
-  const int64_t C = s.C, H = s.H, W = s.W, r = s.radius, size = 2 * r + 1;
-  at::parallel_for(0, s.B * C * H, 1, [&](int64_t row0, int64_t row1) {
-    std::vector<T> acc(W);
-    for (int64_t row = row0; row < row1; ++row) {
-      const int64_t bc = row / H, b = bc / C, i = row % H;
-      const T* pr = p + row * W;
-      std::fill(acc.begin(), acc.end(), T(0));
-      for (int64_t di = 0; di < size; ++di) {
-        const T* qr = q + (bc * H + clamp_index(i + di - r, H)) * W;
-        for (int64_t dj = 0; dj < size; ++dj) {
-          const T* gr = g + ((b * s.shifts + di * size + dj) * H + i) * W;
-          add_signed_grads(acc.data(), gr, pr, qr, dj - r, W);
-        }
-      }
-      for (int64_t j = 0; j < W; ++j) gp[row * W + j] = acc[j] / static_cast<T>(-C);
+void present_grad_row(T* acc, const T* g, const T* p, const T* q, int64_t bc, int64_t i,
+                      const MatchingCostsShape& s) {
+  const int64_t H = s.H, W = s.W, r = s.radius, size = 2 * r + 1, b = bc / s.C;
+  const T* pr = p + (bc * H + i) * W;
+  std::fill(acc, acc + W, T(0));
+  for (int64_t di = 0; di < size; ++di) {
+    const T* qr = q + (bc * H + clamp_index(i + di - r, H)) * W;
+    for (int64_t dj = 0; dj < size; ++dj) {
+      const T* gr = g + ((b * s.shifts + di * size + dj) * H + i) * W;
+      add_signed_grads(acc, gr, pr, qr, dj - r, W);
     }
-  });
+  }
 }
 
-// grad_previous[b, c, i', j'] = (1/C) sum over the (i, j, shift) whose shifted cell is (i', j')
-// of grad * sign(present - previous[i', j']): gathered per target cell (no scatter, no atomics),
-// the edge cells collecting every shift the replicate padding moves onto them.
+// acc[j'] = sum over the (i, j, shift) whose shifted cell is (ti, j') of grad * sign(present -
+// previous[ti, j']) along row ti of plane bc: the row's grad_previous times C. Gathered per
+// target cell (no scatter, no atomics), the edge cells collecting every shift the replicate
+// padding moves onto them.
 template <typename T>
-void previous_grad(const T* g, const T* p, const T* q, T* gq, const MatchingCostsShape& s) {
-  const int64_t C = s.C, H = s.H, W = s.W, r = s.radius, size = 2 * r + 1;
-  at::parallel_for(0, s.B * C * H, 1, [&](int64_t row0, int64_t row1) {
-    std::vector<T> acc(W);
-    for (int64_t row = row0; row < row1; ++row) {
-      const int64_t bc = row / H, b = bc / C, ti = row % H;
-      const T* qr = q + row * W;
-      std::fill(acc.begin(), acc.end(), T(0));
-      for (int64_t di = 0; di < size; ++di) {
-        int64_t i0, i1;
-        sources_of(ti, H, di, r, i0, i1);
-        for (int64_t i = i0; i <= i1; ++i) {
-          const T* pr = p + (bc * H + i) * W;
-          for (int64_t dj = 0; dj < size; ++dj) {
-            const T* gr = g + ((b * s.shifts + di * size + dj) * H + i) * W;
-            // inside the row: target j' = j + dj - r for one source j
-            const int64_t t0 = std::max<int64_t>(1, dj - r);
-            const int64_t t1 = std::min<int64_t>(W - 1, W + dj - r);
-            for (int64_t t = t0; t < t1; ++t) {
-              const int64_t j = t - dj + r;
-              acc[t] += gr[j] * sign_of(pr[j] - qr[t]);
-            }
-            for (int64_t e = 0; e < std::min<int64_t>(W, 2); ++e) {  // the edge columns
-              const int64_t t = e == 0 ? 0 : W - 1;
-              int64_t j0, j1;
-              sources_of(t, W, dj, r, j0, j1);
-              for (int64_t j = j0; j <= j1; ++j) acc[t] += gr[j] * sign_of(pr[j] - qr[t]);
-            }
-          }
+void previous_grad_row(T* acc, const T* g, const T* p, const T* q, int64_t bc, int64_t ti,
+                       const MatchingCostsShape& s) {
+  const int64_t H = s.H, W = s.W, r = s.radius, size = 2 * r + 1, b = bc / s.C;
+  const T* qr = q + (bc * H + ti) * W;
+  std::fill(acc, acc + W, T(0));
+  for (int64_t di = 0; di < size; ++di) {
+    int64_t i0, i1;
+    sources_of(ti, H, di, r, i0, i1);
+    for (int64_t i = i0; i <= i1; ++i) {
+      const T* pr = p + (bc * H + i) * W;
+      for (int64_t dj = 0; dj < size; ++dj) {
+        const T* gr = g + ((b * s.shifts + di * size + dj) * H + i) * W;
+        // inside the row: target j' = j + dj - r for one source j
+        const int64_t t0 = std::max<int64_t>(1, dj - r);
+        const int64_t t1 = std::min<int64_t>(W - 1, W + dj - r);
+        for (int64_t t = t0; t < t1; ++t) {
+          const int64_t j = t - dj + r;
+          acc[t] += gr[j] * sign_of(pr[j] - qr[t]);
+        }
+        for (int64_t e = 0; e < std::min<int64_t>(W, 2); ++e) {  // the edge columns
+          const int64_t t = e == 0 ? 0 : W - 1;
+          int64_t j0, j1;
+          sources_of(t, W, dj, r, j0, j1);
+          for (int64_t j = j0; j <= j1; ++j) acc[t] += gr[j] * sign_of(pr[j] - qr[t]);
         }
       }
-      for (int64_t j = 0; j < W; ++j) gq[row * W + j] = acc[j] / static_cast<T>(C);
+    }
+  }
+}
+
+// Both planes' gradients, a task per row of one channel.
+template <typename T>
+void backward(const T* g, const T* p, const T* q, T* gp, T* gq, const MatchingCostsShape& s) {
+  const int64_t H = s.H, W = s.W;
+  const T scale = static_cast<T>(s.C);
+  at::parallel_for(0, s.B * s.C * H, 1, [&](int64_t row0, int64_t row1) {
+    std::vector<T> acc(W);
+    for (int64_t row = row0; row < row1; ++row) {
+      present_grad_row(acc.data(), g, p, q, row / H, row % H, s);
+      for (int64_t j = 0; j < W; ++j) gp[row * W + j] = acc[j] / -scale;
+      previous_grad_row(acc.data(), g, p, q, row / H, row % H, s);
+      for (int64_t j = 0; j < W; ++j) gq[row * W + j] = acc[j] / scale;
     }
   });
 }
@@ -182,10 +188,8 @@ std::tuple<at::Tensor, at::Tensor> matching_costs_backward_cpu(const at::Tensor&
   if (p.numel() == 0) return {grad_present, grad_previous};
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "matching_costs_backward_cpu", [&] {
     using T = scalar_t;
-    present_grad(g.data_ptr<T>(), p.data_ptr<T>(), q.data_ptr<T>(), grad_present.data_ptr<T>(),
-                 s);
-    previous_grad(g.data_ptr<T>(), p.data_ptr<T>(), q.data_ptr<T>(), grad_previous.data_ptr<T>(),
-                  s);
+    backward(g.data_ptr<T>(), p.data_ptr<T>(), q.data_ptr<T>(), grad_present.data_ptr<T>(),
+             grad_previous.data_ptr<T>(), s);
   });
   return {grad_present, grad_previous};
 }

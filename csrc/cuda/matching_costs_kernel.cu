@@ -7,10 +7,11 @@
 // in order c = 0, 1, ... in acc_t, as the CPU kernel does: float32 results are the CPU's bit
 // for bit.
 //
-// Backward: one thread per plane value. grad_present[b, c, i, j] sums its (2r + 1)^2 shifts;
-// grad_previous[b, c, i', j'] gathers every (i, j, shift) whose shifted cell is (i', j'): one at
-// an inner cell, every shift the replicate padding moves onto an edge cell. Both in the CPU
-// kernel's order, so no two threads write one value and the results are deterministic.
+// Backward: one thread per plane value writes both planes' gradients there. grad_present sums
+// its (2r + 1)^2 shifts; grad_previous at (i', j') gathers every (i, j, shift) whose shifted cell
+// is (i', j'): one at an inner cell, every shift the replicate padding moves onto an edge cell.
+// Both in the CPU kernel's order, so no two threads write one value and the results are
+// deterministic.
 #include "cuda/kernels.h"
 
 namespace t3fast {
@@ -68,72 +69,71 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
+// grad_present at one value: -(1/C) sum over the shifts of grad * sign(present - shifted).
 template <typename T>
-__global__ void __launch_bounds__(kThreads)
-    matching_costs_present_grad_kernel(const T* __restrict__ grad, const T* __restrict__ present,
-                                       const T* __restrict__ previous, const int64_t total,
-                                       const int C, const int H, const int W, const int r,
-                                       T* __restrict__ grad_present) {
+__device__ __forceinline__ acc_t<T> present_grad_at(const T* g, acc_t<T> p, const T* q, int i,
+                                                    int j, int H, int W, int r, int64_t HW) {
   using A = acc_t<T>;
   const int size = 2 * r + 1;
-  const int shifts = size * size;
+  A acc = A(0);
+  for (int di = 0; di < size; ++di) {
+    const T* q_row = q + static_cast<int64_t>(clamp_index(i + di - r, H)) * W;
+    for (int dj = 0; dj < size; ++dj) {
+      const A v = to_acc(q_row[clamp_index(j + dj - r, W)]);
+      acc += to_acc(g[(di * size + dj) * HW + static_cast<int64_t>(i) * W + j]) * sign_of(p - v);
+    }
+  }
+  return acc;
+}
+
+// grad_previous at (ti, tj): (1/C) sum over every (i, j, shift) whose clamped shift lands there
+// of grad * sign(present - previous[ti, tj]).
+template <typename T>
+__device__ __forceinline__ acc_t<T> previous_grad_at(const T* g, const T* p, acc_t<T> v, int ti,
+                                                     int tj, int H, int W, int r, int64_t HW) {
+  using A = acc_t<T>;
+  const int size = 2 * r + 1;
+  A acc = A(0);
+  for (int di = 0; di < size; ++di) {
+    int i0, i1;
+    sources_of(ti, H, di, r, i0, i1);
+    for (int i = i0; i <= i1; ++i) {
+      for (int dj = 0; dj < size; ++dj) {
+        int j0, j1;
+        sources_of(tj, W, dj, r, j0, j1);
+        const T* g_row = g + (di * size + dj) * HW + static_cast<int64_t>(i) * W;
+#pragma unroll 1  // one source inside the plane: unrolled, the float32 kernel spilled
+        for (int j = j0; j <= j1; ++j) {
+          acc += to_acc(g_row[j]) * sign_of(to_acc(p[static_cast<int64_t>(i) * W + j]) - v);
+        }
+      }
+    }
+  }
+  return acc;
+}
+
+// One thread per plane value (b, c, i, j): both planes' gradients there.
+template <typename T>
+__global__ void __launch_bounds__(kThreads)
+    matching_costs_backward_kernel(const T* __restrict__ grad, const T* __restrict__ present,
+                                   const T* __restrict__ previous, const int64_t total,
+                                   const int C, const int H, const int W, const int r,
+                                   T* __restrict__ grad_present, T* __restrict__ grad_previous) {
+  using A = acc_t<T>;
+  const int shifts = (2 * r + 1) * (2 * r + 1);
   const int64_t HW = static_cast<int64_t>(H) * W;
   for (int64_t e = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; e < total;
        e += static_cast<int64_t>(gridDim.x) * blockDim.x) {
     const int j = static_cast<int>(e % W);
     const int i = static_cast<int>((e / W) % H);
     const int64_t bc = e / HW;
-    const int64_t b = bc / C;
-    const A p = to_acc(present[e]);
-    const T* q = previous + bc * HW;
-    const T* g = grad + b * shifts * HW + static_cast<int64_t>(i) * W + j;
-    A acc = A(0);
-    for (int di = 0; di < size; ++di) {
-      const T* q_row = q + static_cast<int64_t>(clamp_index(i + di - r, H)) * W;
-      for (int dj = 0; dj < size; ++dj) {
-        const A v = to_acc(q_row[clamp_index(j + dj - r, W)]);
-        acc += to_acc(g[(di * size + dj) * HW]) * sign_of(p - v);
-      }
-    }
-    grad_present[e] = from_acc<T>(acc / static_cast<A>(-C));
-  }
-}
-
-template <typename T>
-__global__ void __launch_bounds__(kThreads)
-    matching_costs_previous_grad_kernel(const T* __restrict__ grad, const T* __restrict__ present,
-                                        const T* __restrict__ previous, const int64_t total,
-                                        const int C, const int H, const int W, const int r,
-                                        T* __restrict__ grad_previous) {
-  using A = acc_t<T>;
-  const int size = 2 * r + 1;
-  const int shifts = size * size;
-  const int64_t HW = static_cast<int64_t>(H) * W;
-  for (int64_t e = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x; e < total;
-       e += static_cast<int64_t>(gridDim.x) * blockDim.x) {
-    const int tj = static_cast<int>(e % W);
-    const int ti = static_cast<int>((e / W) % H);
-    const int64_t bc = e / HW;
-    const int64_t b = bc / C;
-    const A v = to_acc(previous[e]);
+    const T* g = grad + bc / C * shifts * HW;
     const T* p = present + bc * HW;
-    const T* g = grad + b * shifts * HW;
-    A acc = A(0);
-    for (int di = 0; di < size; ++di) {
-      int i0, i1;
-      sources_of(ti, H, di, r, i0, i1);
-      for (int i = i0; i <= i1; ++i) {
-        for (int dj = 0; dj < size; ++dj) {
-          int j0, j1;
-          sources_of(tj, W, dj, r, j0, j1);
-          const T* g_row = g + (di * size + dj) * HW + static_cast<int64_t>(i) * W;
-          for (int j = j0; j <= j1; ++j) {
-            acc += to_acc(g_row[j]) * sign_of(to_acc(p[static_cast<int64_t>(i) * W + j]) - v);
-          }
-        }
-      }
-    }
-    grad_previous[e] = from_acc<T>(acc / static_cast<A>(C));
+    const T* q = previous + bc * HW;
+    const A gp = present_grad_at(g, to_acc(present[e]), q, i, j, H, W, r, HW);
+    const A gq = previous_grad_at(g, p, to_acc(previous[e]), i, j, H, W, r, HW);
+    grad_present[e] = from_acc<T>(gp / static_cast<A>(-C));
+    grad_previous[e] = from_acc<T>(gq / static_cast<A>(C));
   }
 }
 
@@ -156,12 +156,8 @@ cudaError_t matching_costs_backward(const T* grad, const T* present, const T* pr
                                     T* grad_present, T* grad_previous, cudaStream_t stream) {
   const int64_t total = batch * channels * static_cast<int64_t>(h) * w;
   if (total == 0) return cudaSuccess;
-  matching_costs_present_grad_kernel<T><<<blocks_for(total), kThreads, 0, stream>>>(
-      grad, present, previous, total, channels, h, w, radius, grad_present);
-  cudaError_t err = cudaGetLastError();
-  if (err != cudaSuccess) return err;
-  matching_costs_previous_grad_kernel<T><<<blocks_for(total), kThreads, 0, stream>>>(
-      grad, present, previous, total, channels, h, w, radius, grad_previous);
+  matching_costs_backward_kernel<T><<<blocks_for(total), kThreads, 0, stream>>>(
+      grad, present, previous, total, channels, h, w, radius, grad_present, grad_previous);
   return cudaGetLastError();
 }
 

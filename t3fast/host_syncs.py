@@ -93,12 +93,18 @@ class SyncCounter(TorchDispatchMode):
     def _count(counter: Counter[str], stack: traceback.StackSummary, outside: str | None = None) -> None:
         """Count one op for the innermost t3fast frame of ``stack`` that ran it (for ``outside``
         where none did, if given)."""
-        frames = [f for f in stack if "/t3fast/" in f.filename and not f.filename.endswith("host_syncs.py")]
-        if frames:
-            f = frames[-1]
-            counter[f"{f.filename.rsplit('/t3fast/', 1)[1]}:{f.name}"] += 1
+        caller = t3fast_caller(stack)
+        if caller is not None:
+            counter[caller] += 1
         elif outside is not None:
             counter[outside] += 1
+
+
+def t3fast_caller(stack: traceback.StackSummary) -> str | None:
+    """``"module/path.py:function"`` of the innermost t3fast frame of ``stack`` (this module's
+    left out), or None where no t3fast code is on it."""
+    frames = [f for f in stack if "/t3fast/" in f.filename and not f.filename.endswith("host_syncs.py")]
+    return f"{frames[-1].filename.rsplit('/t3fast/', 1)[1]}:{frames[-1].name}" if frames else None
 
 
 def _to_device(source: object, out: object) -> bool:

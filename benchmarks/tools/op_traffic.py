@@ -11,7 +11,7 @@ about 3 TB/s); the eager kernels each read and write their operands once.
 from __future__ import annotations
 
 import argparse
-import sys
+import traceback
 from collections import Counter
 
 import torch
@@ -20,22 +20,12 @@ from torch.utils._pytree import tree_leaves
 
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.host_syncs import sync_free
+from t3fast.host_syncs import sync_free, t3fast_caller
 from t3fast.pretrained import load_world_model
 
 VIEWS = {"view", "_unsafe_view", "expand", "slice", "select", "unsqueeze", "squeeze", "permute", "transpose", "t",
          "as_strided", "alias", "detach", "unbind", "split", "split_with_sizes", "chunk", "narrow", "unfold",
          "diagonal"}
-
-
-def _caller() -> str:
-    frame = sys._getframe(2)
-    while frame is not None:
-        path = frame.f_code.co_filename
-        if "/t3fast/" in path and not path.endswith("host_syncs.py"):
-            return f"{path.split('/t3fast/')[-1]}:{frame.f_code.co_name}"
-        frame = frame.f_back
-    return "?"
 
 
 class Traffic(TorchDispatchMode):
@@ -50,7 +40,7 @@ class Traffic(TorchDispatchMode):
         out = func(*args, **(kwargs or {}))
         if func._schema.name.removeprefix("aten::") not in VIEWS:
             tensors = [t for t in tree_leaves((args, kwargs, out)) if isinstance(t, torch.Tensor)]
-            caller = _caller()
+            caller = t3fast_caller(traceback.extract_stack()) or "(outside t3fast)"
             self.bytes[caller] += sum(t.numel() * t.element_size() for t in tensors)
             self.ops[caller] += 1
         return out

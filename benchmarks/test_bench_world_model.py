@@ -8,27 +8,23 @@ in its own ego frame)."""
 
 from __future__ import annotations
 
-import pytest
+import contextlib
 
-import t3fast.models.flow_forecaster as flow_module
-import t3fast.models.forecaster as forecaster_module
+import pytest
+from workloads import reference_ops
+
 from t3fast.data.sample import PRESENT
 from t3fast.data.synthetic import SyntheticDriving
-from t3fast.ops import delta_fuse, matching_costs, reference
 from t3fast.pretrained import load_world_model
 
 
 @pytest.mark.parametrize("name", ["wm-small", "wm-small-own-frames"])
 @pytest.mark.parametrize("impl", ["fused", "reference"])
-def test_whole_forecast(benchmark, impl, name, monkeypatch):
+def test_whole_forecast(benchmark, impl, name):
     benchmark.group = f"whole forecast ({name}, batch 1, encoding included)"
     model = load_world_model(name)
-    model.decoder.backend = model.encoder.backend = impl
-    fuse = delta_fuse if impl == "fused" else reference.delta_fuse
-    for module in (forecaster_module, flow_module):
-        monkeypatch.setattr(module, "delta_fuse", fuse)
-    monkeypatch.setattr(flow_module, "matching_costs", matching_costs if impl == "fused" else reference.matching_costs)
     sample = SyntheticDriving("val", 1, 20, stride=9)[0]
     occ, poses = sample.occ[None, : PRESENT + 1], sample.ego_poses[None, : PRESENT + 1]
-    benchmark.pedantic(lambda: model.forecast(occ, poses), rounds=5, warmup_rounds=1)
+    with reference_ops(model) if impl == "reference" else contextlib.nullcontext():
+        benchmark.pedantic(lambda: model.forecast(occ, poses), rounds=5, warmup_rounds=1)
     benchmark.extra_info["fps"] = 1 / benchmark.stats.stats.median

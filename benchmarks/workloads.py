@@ -10,8 +10,10 @@ Two environment variables select where and how big:
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+from collections.abc import Iterator
 
 import torch
 
@@ -29,6 +31,28 @@ CHANNELS = 8 if QUICK else 64  # axis_pool / delta_fuse channels
 DECODERS = {"small": (16, 64, 2), "paper": (64, 256, 4)}
 IMPLS = {"fused": fused, "reference": reference}
 FLOAT_BYTES = 4  # every workload runs in float32
+
+
+@contextlib.contextmanager
+def reference_ops(model: torch.nn.Module) -> Iterator[None]:
+    """A world model's forecast with every fused op it calls run as its pure-PyTorch reference:
+    the encoder's stem, the decoder, the forecasters' delta fusion and the flow forecaster's
+    matching costs."""
+    import t3fast.models.flow_forecaster as flow_module
+    import t3fast.models.forecaster as forecaster_module
+
+    swapped = [(forecaster_module, "delta_fuse"), (flow_module, "delta_fuse"), (flow_module, "matching_costs")]
+    fused_ops = [getattr(module, name) for module, name in swapped]
+    backends = model.decoder.backend, model.encoder.backend
+    for module, name in swapped:
+        setattr(module, name, getattr(reference, name))
+    model.decoder.backend = model.encoder.backend = "reference"
+    try:
+        yield
+    finally:
+        for (module, name), op in zip(swapped, fused_ops):
+            setattr(module, name, op)
+        model.decoder.backend, model.encoder.backend = backends
 
 
 def rounds(n: int) -> int:

@@ -41,6 +41,8 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.workloads import reference_ops
+
 MODES = ["eager", "eager-reference", "cuda-graph", "compile", "compile-graphs"]
 
 
@@ -74,28 +76,6 @@ def build(size: str, device: torch.device, batch: int):
     occupancy = sample.occ[None, : PRESENT + 1, :x, :y, :z].expand(batch, -1, -1, -1, -1).contiguous()
     poses = sample.ego_poses[None, : PRESENT + 1].expand(batch, -1, -1, -1).contiguous()
     return model, occupancy.to(device), poses.to(device)
-
-
-@contextlib.contextmanager
-def reference_ops(model):
-    """The encoder's stem, the decoder, the forecasters' delta fusion and the flow forecaster's
-    matching costs on the pure-PyTorch references."""
-    import t3fast.models.flow_forecaster as flow_module
-    import t3fast.models.forecaster as forecaster_module
-    from t3fast.ops import reference
-
-    swapped = [(forecaster_module, "delta_fuse"), (flow_module, "delta_fuse"), (flow_module, "matching_costs")]
-    fused = [getattr(module, name) for module, name in swapped]
-    backends = model.decoder.backend, model.encoder.backend
-    for module, name in swapped:
-        setattr(module, name, getattr(reference, name))
-    model.decoder.backend = model.encoder.backend = "reference"
-    try:
-        yield
-    finally:
-        for (module, name), op in zip(swapped, fused):
-            setattr(module, name, op)
-        model.decoder.backend, model.encoder.backend = backends
 
 
 def step_function(model, occupancy, poses, mode: str, device: torch.device):

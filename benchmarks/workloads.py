@@ -36,7 +36,7 @@ FLOAT_BYTES = 4  # every workload runs in float32
 @contextlib.contextmanager
 def reference_ops(model: torch.nn.Module) -> Iterator[None]:
     """A world model's forecast with every fused op it calls run as its pure-PyTorch reference:
-    the encoder's stem, the decoder, the forecasters' delta fusion and the flow forecaster's
+    the encoder's stem and norms, the decoder, the forecasters' delta fusion and the flow forecaster's
     matching costs."""
     import t3fast.models.flow_forecaster as flow_module
     import t3fast.models.forecaster as forecaster_module

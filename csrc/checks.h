@@ -5,6 +5,7 @@
 
 #include <ATen/ATen.h>
 
+#include <cmath>
 #include <string>
 #include <vector>
 
@@ -189,6 +190,66 @@ inline MatchingCostsShape check_matching_costs_backward(const at::Tensor& grad,
   check_size(grad, op, "grad", 1, s.shifts, "the (2 radius + 1)^2 shifts");
   check_size(grad, op, "grad", 2, s.H, "H, as present");
   check_size(grad, op, "grad", 3, s.W, "W, as present");
+  return s;
+}
+
+// Sizes of group_norm_silu: input [B, C, *] viewed as [B, C, S], C in G groups of Cg channels.
+struct GroupNormShape {
+  int64_t B, C, S, G, Cg;
+};
+
+// group_norm_silu: input [B, C, *] (at least 2 dims), weight and bias [C], groups dividing C,
+// eps >= 0, residual (if any) shaped, typed and placed as input.
+inline GroupNormShape check_group_norm_silu(const at::Tensor& input, const at::Tensor& weight,
+                                            const at::Tensor& bias,
+                                            const c10::optional<at::Tensor>& residual,
+                                            int64_t groups, double eps, const char* op) {
+  T3FAST_CHECK(input.dim() >= 2, op, "input must have at least 2 dims [B, C, *], got ",
+               input.dim(), " dims ", input.sizes());
+  check_float_dtype(input, op, "input");
+  check_dim(weight, op, "weight", 1, "[C]");
+  check_dim(bias, op, "bias", 1, "[C]");
+  check_same_device(weight, input, op, "weight", "input");
+  check_same_device(bias, input, op, "bias", "input");
+  check_same_dtype(weight, input, op, "weight", "input");
+  check_same_dtype(bias, input, op, "bias", "input");
+  const int64_t C = input.size(1);
+  check_size(weight, op, "weight", 0, C, "C, as input.shape[1]");
+  check_size(bias, op, "bias", 0, C, "C, as input.shape[1]");
+  T3FAST_CHECK(groups >= 1 && C % groups == 0, op, "groups must be a positive divisor of the ",
+               C, " channels, got ", groups);
+  T3FAST_CHECK(eps >= 0.0 && std::isfinite(eps), op, "eps must be finite and >= 0, got ", eps);
+  if (residual.has_value()) {
+    check_same_device(*residual, input, op, "residual", "input");
+    check_same_dtype(*residual, input, op, "residual", "input");
+    T3FAST_CHECK(residual->sizes() == input.sizes(), op, "residual must have the shape of input ",
+                 input.sizes(), ", got ", residual->sizes());
+  }
+  const int64_t B = input.size(0);
+  const int64_t S = C == 0 || B == 0 ? 0 : input.numel() / (B * C);
+  return {B, C, S, groups, C / groups};
+}
+
+// group_norm_silu_backward: grad shaped as input; mean and rstd [B, groups] in the accumulation
+// dtype (float64 for float64 input, float32 otherwise).
+inline GroupNormShape check_group_norm_silu_backward(
+    const at::Tensor& grad, const at::Tensor& input, const at::Tensor& weight,
+    const at::Tensor& bias, const c10::optional<at::Tensor>& residual, const at::Tensor& mean,
+    const at::Tensor& rstd, int64_t groups, const char* op) {
+  const GroupNormShape s = check_group_norm_silu(input, weight, bias, residual, groups, 0.0, op);
+  check_same_device(grad, input, op, "grad", "input");
+  check_same_dtype(grad, input, op, "grad", "input");
+  T3FAST_CHECK(grad.sizes() == input.sizes(), op, "grad must have the shape of input ",
+               input.sizes(), ", got ", grad.sizes());
+  const auto acc = input.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  for (const auto* t : {&mean, &rstd}) {
+    const char* name = t == &mean ? "mean" : "rstd";
+    check_same_device(*t, input, op, name, "input");
+    T3FAST_CHECK(t->scalar_type() == acc, op, name, " must be ", acc, " for ",
+                 input.scalar_type(), " input, got ", t->scalar_type());
+    T3FAST_CHECK(t->dim() == 2 && t->size(0) == s.B && t->size(1) == s.G, op, name,
+                 " must have shape [", s.B, ", ", s.G, "] (batch, groups), got ", t->sizes());
+  }
   return s;
 }
 

@@ -44,6 +44,17 @@ TORCH_LIBRARY(t3fast, m) {
   m.def(
       "matching_costs_backward(Tensor grad, Tensor present, Tensor previous, int radius) "
       "-> (Tensor, Tensor)");
+  // silu(group_norm(input) * weight + bias + residual): input [B, C, *] in groups of C / groups
+  // channels, weight and bias [C], residual (optional) shaped as input. Returns (out, mean
+  // [B, groups], rstd [B, groups]), the statistics in float32 (float64 for float64 input).
+  m.def(
+      "group_norm_silu(Tensor input, Tensor weight, Tensor bias, int groups, float eps, "
+      "Tensor? residual=None) -> (Tensor, Tensor, Tensor)");
+  // -> (grad_input, grad_weight, grad_bias, grad_residual); grad_residual is empty without a
+  // residual.
+  m.def(
+      "group_norm_silu_backward(Tensor grad, Tensor input, Tensor weight, Tensor bias, "
+      "Tensor? residual, Tensor mean, Tensor rstd, int groups) -> (Tensor, Tensor, Tensor, Tensor)");
   // out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :] (zero outside the
   // volume): a 3 x 3 x 3 convolution of the class-embedded labels. labels [B, X, Y, Z] -> out
   // [B, C, X, Y, Z]; table [27, K, C], taps in (dx, dy, dz) order, each from -1 to 1.

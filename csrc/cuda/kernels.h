@@ -240,6 +240,33 @@ cudaError_t matching_costs_backward(const T* grad, const T* present, const T* pr
                                     int64_t batch, int channels, int h, int w, int radius,
                                     T* grad_present, T* grad_previous, cudaStream_t stream);
 
+// ------------------------------------------------------------------ group_norm_silu
+
+// Chunks of kChunk values per (batch, channel) row of spatial values: the workspaces below
+// hold 2 sums per chunk, batch * channels * chunks * 2 values.
+int64_t group_norm_silu_chunks(int64_t spatial);
+
+// y = silu((x - mean) * rstd * weight + bias [+ residual]) for x [batch, channels, spatial] in
+// groups of channels / groups consecutive channels; mean and rstd [batch, groups] receive the
+// groups' statistics. residual may be null.
+template <typename T>
+cudaError_t group_norm_silu_forward(const T* x, const T* weight, const T* bias, const T* residual,
+                                    int64_t batch, int64_t channels, int64_t spatial,
+                                    int64_t groups, double eps, T* y, acc_t<T>* mean,
+                                    acc_t<T>* rstd, acc_t<T>* workspace, cudaStream_t stream);
+
+// grad_input from grad (shaped as x), and the residual's gradient (silu's gradient, into
+// grad_residual unless it is null); row_sums [batch * channels, 2] receives each row's sums of
+// that gradient and of it times the normalised input (the bias' and weight's gradients summed
+// over the batch).
+template <typename T>
+cudaError_t group_norm_silu_backward(const T* grad, const T* x, const T* weight, const T* bias,
+                                     const T* residual, const acc_t<T>* mean,
+                                     const acc_t<T>* rstd, int64_t batch, int64_t channels,
+                                     int64_t spatial, int64_t groups, T* grad_input,
+                                     T* grad_residual, acc_t<T>* row_sums, acc_t<T>* workspace,
+                                     cudaStream_t stream);
+
 // ------------------------------------------------------------------ label_conv3d
 
 // out [batch, channels, x, y, z] = sum over the 27 taps t (dx, dy, dz each -1..1, dx slowest)

@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 from t3fast.data.classes import FREE, IGNORE
 from t3fast.host_syncs import reads_host
-from t3fast.models.blocks import ResBlock3d, group_norm
+from t3fast.models.blocks import ResBlock3d, group_norm, norm_silu
 from t3fast.models.config import AutoencoderConfig
 from t3fast.models.triplane import Triplane
 from t3fast.ops import axis_pool, label_conv3d
@@ -42,8 +42,10 @@ class TriplaneEncoder(nn.Module):
     With ``config.latent == "bev"`` only the xy plane is produced (``xz``/``yz`` are None).
 
     The embedding and the stem convolution run as one :func:`~t3fast.ops.label_conv3d` (27
-    table lookups per voxel) with ``backend="fused"``; ``"reference"`` runs them as the
-    ``nn.Embedding`` and ``nn.Conv3d`` they are (same weights, same results to rounding).
+    table lookups per voxel), and each GroupNorm with the activation after it (and a residual
+    block's sum) as one :func:`~t3fast.ops.group_norm_silu`, with ``backend="fused"``;
+    ``"reference"`` runs them as the ``nn.Embedding``, ``nn.Conv3d``, ``nn.GroupNorm`` and
+    ``nn.SiLU`` they are (same weights, same results to rounding).
 
     Args:
         config: sizes; the default is the papers' (``AutoencoderConfig()``).
@@ -79,8 +81,13 @@ class TriplaneEncoder(nn.Module):
         """The encoded volume ``[B, C, X', Y', Z']`` before pooling."""
         check_labels(labels, self.config.grid, self.config.num_classes)
         ids = labels.masked_fill(labels == IGNORE, FREE)
-        x = self.full_res(self.stem[1:](self.stem_conv(ids)))
-        x = self.half_res(self.down(x))
+        fused = self.backend == "fused"
+        x = norm_silu(self.stem[1], self.stem[2], self.stem_conv(ids), fused=fused)
+        for block in self.full_res:
+            x = block(x, fused)
+        x = norm_silu(self.down[1], self.down[2], self.down[0](x), fused=fused)
+        for block in self.half_res:
+            x = block(x, fused)
         return self.proj(x)
 
     def stem_conv(self, ids: Tensor) -> Tensor:

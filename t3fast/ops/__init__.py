@@ -19,8 +19,8 @@ from t3fast.ops import _checks, reference
 from t3fast.ops._checks import checked_grid
 from t3fast.ops._extension import _C, BUILD_HINT, UNAVAILABLE_REASON
 
-__all__ = ["axis_pool", "bev_components", "box_fit", "build_info", "delta_fuse", "draw_boxes", "label_conv3d",
-           "matching_costs", "reference", "triplane_decode"]
+__all__ = ["axis_pool", "bev_components", "box_fit", "build_info", "delta_fuse", "draw_boxes", "group_norm_silu",
+           "label_conv3d", "matching_costs", "reference", "triplane_decode"]
 
 if _C is not None:
     from t3fast.ops._registration import ops
@@ -186,6 +186,35 @@ def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
         _checks.check_matching_costs(present, previous, radius)
         return reference.matching_costs(present, previous, radius)
     return ops.matching_costs.default(present, previous, radius)
+
+
+def group_norm_silu(input: Tensor, weight: Tensor, bias: Tensor, groups: int, eps: float = 1e-5,
+                    residual: Tensor | None = None) -> Tensor:
+    """``silu(group_norm(input, groups, weight, bias, eps) + residual)``: a convolution block's
+    normalisation, residual add and activation in one op.
+
+    Two reads of ``input`` (the groups' sums, then the output) and one write, where
+    ``group_norm``, the add and ``silu`` run one after another read and write the activation
+    four to seven times; the backward reads it twice more. Under autocast the op computes in
+    float32 (as ``group_norm`` does under CUDA's autocast).
+
+    Args:
+        input: ``[B, C, *]``; float32/float64 (on CUDA also float16/bfloat16, accumulated in
+            float32).
+        weight, bias: ``[C]``, the dtype of ``input``.
+        groups: a divisor of ``C``; group ``g`` is channels ``g C / groups`` to
+            ``(g + 1) C / groups - 1``.
+        eps: added to the variance (biased, as ``group_norm``'s).
+        residual: ``[B, C, *]`` as ``input``, added after the affine transform; or None.
+
+    Returns:
+        ``[B, C, *]`` in the dtype of ``input``. Differentiable with respect to ``input``,
+        ``weight``, ``bias`` and ``residual`` (once).
+    """
+    if ops is None:
+        _checks.check_group_norm_silu(input, weight, bias, groups, eps, residual)
+        return reference.group_norm_silu(input, weight, bias, groups, eps, residual)
+    return ops.group_norm_silu.default(input, weight, bias, groups, eps, residual)[0]
 
 
 def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:

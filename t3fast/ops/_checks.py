@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import math
 import operator
 import os
 from collections.abc import Sequence
@@ -215,6 +216,27 @@ def check_matching_costs(present: torch.Tensor, previous: torch.Tensor, radius: 
     _require(present.shape[1] > 0, op, "present must have at least one channel (the costs are channel means), "
              f"got shape {list(present.shape)}")
     _require(0 <= radius <= 64, op, f"radius must be in [0, 64], got {radius}")
+
+
+def check_group_norm_silu(input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, groups: int, eps: float,
+                          residual: torch.Tensor | None) -> None:
+    """group_norm_silu's arguments, as csrc/checks.h checks them."""
+    op = "group_norm_silu"
+    _require(input.dim() >= 2, op, f"input must have at least 2 dims [B, C, *], got {input.dim()} dims "
+             f"{list(input.shape)}")
+    _check_float(input, op, "input")
+    for name, t in (("weight", weight), ("bias", bias)):
+        _check_dim(t, op, name, 1, "[C]")
+        _check_like(t, input, op, name, "input")
+        _check_size(t, op, name, 0, input.shape[1], "C, as input.shape[1]")
+    channels = input.shape[1]
+    _require(groups >= 1 and channels % groups == 0, op,
+             f"groups must be a positive divisor of the {channels} channels, got {groups}")
+    _require(eps >= 0 and math.isfinite(eps), op, f"eps must be finite and >= 0, got {eps}")
+    if residual is not None:
+        _check_like(residual, input, op, "residual", "input")
+        _require(residual.shape == input.shape, op,
+                 f"residual must have the shape of input {list(input.shape)}, got {list(residual.shape)}")
 
 
 def check_label_conv3d(labels: torch.Tensor, table: torch.Tensor) -> None:

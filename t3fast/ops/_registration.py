@@ -270,6 +270,64 @@ torch.library.register_autograd("t3fast::matching_costs_backward", _matching_cos
                                 setup_context=_no_setup)
 
 
+# ---------------------------------------------------------------- group_norm_silu
+def _group_norm_silu_check(op, input, weight, bias, residual, groups):
+    torch._check(input.dim() >= 2, lambda: f"t3fast.{op}: input must have at least 2 dims [B, C, *], got "
+                 f"{input.dim()} dims {list(input.shape)}")
+    _check_like(op, "input", input, weight=weight, bias=bias, residual=residual)
+    torch._check(groups >= 1 and input.shape[1] % groups == 0,
+                 lambda: f"t3fast.{op}: groups must be a positive divisor of the {input.shape[1]} channels, "
+                 f"got {groups}")
+
+
+def _statistics_dtype(input: torch.Tensor) -> torch.dtype:
+    return torch.float64 if input.dtype == torch.float64 else torch.float32
+
+
+@torch.library.register_fake("t3fast::group_norm_silu")
+def _group_norm_silu_fake(input, weight, bias, groups, eps, residual=None):
+    _group_norm_silu_check("group_norm_silu", input, weight, bias, residual, groups)
+    stats = input.new_empty((input.shape[0], groups), dtype=_statistics_dtype(input))
+    return torch.empty_like(input, memory_format=torch.contiguous_format), stats, torch.empty_like(stats)
+
+
+@torch.library.register_fake("t3fast::group_norm_silu_backward")
+def _group_norm_silu_backward_fake(grad, input, weight, bias, residual, mean, rstd, groups):
+    _group_norm_silu_check("group_norm_silu_backward", input, weight, bias, residual, groups)
+    _check_like("group_norm_silu_backward", "input", input, grad=grad)
+    grad_residual = torch.empty_like(residual) if residual is not None else input.new_empty((0,))
+    return (torch.empty_like(input, memory_format=torch.contiguous_format), torch.empty_like(weight),
+            torch.empty_like(bias), grad_residual)
+
+
+def _group_norm_silu_setup(ctx, inputs, output):
+    input, weight, bias, ctx.groups, _, residual = inputs
+    _, mean, rstd = output
+    ctx.mark_non_differentiable(mean, rstd)  # statistics for the backward, not results
+    ctx.has_residual = residual is not None
+    ctx.save_for_backward(input, weight, bias, residual, mean, rstd)
+
+
+def _group_norm_silu_backward(ctx, grad, _grad_mean, _grad_rstd):
+    input, weight, bias, residual, mean, rstd = ctx.saved_tensors
+    grad_input, grad_weight, grad_bias, grad_residual = ops.group_norm_silu_backward.default(
+        grad, input, weight, bias, residual, mean, rstd, ctx.groups)
+    return grad_input, grad_weight, grad_bias, None, None, grad_residual if ctx.has_residual else None
+
+
+torch.library.register_autograd("t3fast::group_norm_silu", _group_norm_silu_backward,
+                                setup_context=_group_norm_silu_setup)
+
+
+def _group_norm_silu_double_backward(ctx, *grads):
+    raise RuntimeError("t3fast.group_norm_silu: double backward is not supported; use "
+                       "t3fast.ops.reference.group_norm_silu for higher-order gradients")
+
+
+torch.library.register_autograd("t3fast::group_norm_silu_backward", _group_norm_silu_double_backward,
+                                setup_context=_no_setup)
+
+
 # ---------------------------------------------------------------- label_conv3d
 @torch.library.register_fake("t3fast::label_conv3d")
 def _label_conv3d_fake(labels, table):
@@ -349,17 +407,18 @@ def _box_fit_fake(ids, track, centroid, poses, start, reach, lower, voxel_size, 
 _autocast_lib = torch.library.Library("t3fast", "IMPL")
 
 
-def _register_autocast(op: str, device_type: str) -> None:
+def _register_autocast(op: str, device_type: str, float32: bool = False) -> None:
     """``op`` under autocast on ``device_type``: its floating inputs other than float64 cast to
     the autocast dtype on CUDA (as ``conv2d`` runs, whose 1x1 case ``delta_fuse`` fuses), to
-    float32 on the CPU, whose kernels have no lower precision; so that a tensor from an autocast
+    float32 on the CPU, whose kernels have no lower precision, and everywhere for ``float32``
+    ops (normalisations, which autocast runs in float32); so that a tensor from an autocast
     layer meets float32 planes and weights in one dtype."""
     key = "Autocast" + torch._C._dispatch_key_for_device(device_type)
     excluded = torch._C.DispatchKeySet(getattr(torch._C.DispatchKey, key))
     overload = getattr(ops, op).default
 
     def kernel(_keyset, *args):
-        dtype = torch.get_autocast_dtype(device_type) if device_type == "cuda" else torch.float32
+        dtype = torch.get_autocast_dtype(device_type) if device_type == "cuda" and not float32 else torch.float32
 
         def cast(a):
             if isinstance(a, list | tuple):
@@ -382,3 +441,5 @@ def _register_autocast(op: str, device_type: str) -> None:
 for _op, _device_type in (("delta_fuse", "cuda"), ("delta_fuse", "cpu"), ("axis_pool", "cpu"),
                           ("triplane_decode", "cpu"), ("label_conv3d", "cpu")):
     _register_autocast(_op, _device_type)
+for _device_type in ("cuda", "cpu"):
+    _register_autocast("group_norm_silu", _device_type, float32=True)

@@ -151,6 +151,13 @@ def matching_costs(present: Tensor, previous: Tensor, radius: int) -> Tensor:
     return torch.stack(rows, 1).permute(0, 1, 3, 2, 4).reshape(b, size * size, h, w).div_(-c)
 
 
+def group_norm_silu(input: Tensor, weight: Tensor, bias: Tensor, groups: int, eps: float = 1e-5,
+                    residual: Tensor | None = None) -> Tensor:
+    """``silu(group_norm(input) * weight + bias [+ residual])`` as the three ops it fuses."""
+    out = F.group_norm(input, groups, weight, bias, eps)
+    return F.silu(out if residual is None else out + residual)
+
+
 def label_conv3d(labels: Tensor, table: Tensor) -> Tensor:
     """``out[b, :, v] = sum over the 27 taps t of table[t, labels[b, v + t], :]`` (nothing from
     outside the volume): ``labels [B, X, Y, Z]`` (class ids in ``[0, K)``), ``table [27, K, C]``

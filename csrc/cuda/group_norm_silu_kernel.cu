@@ -268,8 +268,9 @@ cudaError_t group_norm_silu_backward(const T* grad, const T* x, const T* weight,
                                                    workspace);
   cudaError_t err = cudaGetLastError();
   if (err != cudaSuccess) return err;
+  using A = acc_t<T>;
   const int64_t row_blocks = ceil_div(rows, kThreads) < 65536 ? ceil_div(rows, kThreads) : 65536;
-  rows_kernel<acc_t<T>><<<static_cast<unsigned>(row_blocks), kThreads, 0, stream>>>(
+  rows_kernel<A><<<static_cast<unsigned>(row_blocks), kThreads, 0, stream>>>(
       workspace, rows, chunks, row_sums);
   err = cudaGetLastError();
   if (err != cudaSuccess) return err;

@@ -367,6 +367,38 @@ def test_matching_costs(cuda_ops, dtype, shape, radius):
         assert_same(got_grads, torch.ops.t3fast.matching_costs_backward(grad, present, previous, radius))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("shape, groups, residual", [((2, 8, 9, 7, 5), 4, True), ((1, 4, 5000), 2, False),
+                                                     ((3, 6, 13), 6, True), ((2, 3, 1), 1, False)])
+def test_group_norm_silu(cuda_ops, dtype, shape, groups, residual):
+    """Forward and backward against the CPU kernel: chunks of 2,048 values (several per row in
+    the second case) summed in float32 (float64 for float64); float16 / bfloat16 inputs computed
+    in float32, each result rounded once."""
+    g = torch.Generator().manual_seed(0)
+    x, w, b = ((torch.randn(s, generator=g) * 2 + 0.5).to(dtype) for s in (shape, shape[1:2], shape[1:2]))
+    r = torch.randn(shape, generator=g).to(dtype) if residual else None
+    grad = torch.randn(shape, generator=g).to(dtype)
+
+    def wide(t):  # the same values in the precision the kernels compute in
+        return t if t is None or t.dtype in (torch.float32, torch.float64) else t.float()
+
+    got = cuda_ops.group_norm_silu(x, w, b, groups, 1e-5, r)
+    want = torch.ops.t3fast.group_norm_silu(wide(x), wide(w), wide(b), groups, 1e-5, wide(r))
+    assert got[0].dtype == dtype and got[1].dtype == got[2].dtype == want[1].dtype
+    got_grads = cuda_ops.group_norm_silu_backward(grad, x, w, b, r, got[1], got[2], groups)
+    want_grads = torch.ops.t3fast.group_norm_silu_backward(wide(grad), wide(x), wide(w), wide(b), wide(r),
+                                                           want[1], want[2], groups)
+    if not residual:
+        assert got_grads[3].numel() == 0
+        got_grads, want_grads = got_grads[:3], want_grads[:3]
+    tol = {torch.float64: 1e-12, torch.float32: 1e-5}.get(dtype)
+    for a, e in zip((*got, *got_grads), (*want, *want_grads)):
+        if a.dtype == e.dtype:  # the results of float32 / float64, and the statistics
+            assert_same(a, e, tol or 1e-5, tol or 1e-5)
+        else:
+            assert_close_lowp(a, e, dtype)
+
+
 @pytest.mark.parametrize("label_dtype", [torch.uint8, torch.int32, torch.int64])
 @pytest.mark.parametrize("shape, classes, channels", [((2, 12, 10, 6), 18, 8), ((1, 5, 1, 9), 3, 13),
                                                       ((1, 1, 1, 1), 2, 1)])

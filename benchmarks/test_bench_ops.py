@@ -17,12 +17,14 @@ from workloads import (
     IMPLS,
     MATCHING_RADIUS,
     MATCHING_SHAPE,
+    NORM_SHAPES,
     POINTS,
     axis_pool_cost,
     axis_pool_shape,
     decode_cost,
     delta_fuse_cost,
     delta_fuse_shapes,
+    group_norm_silu_cost,
     label_conv3d_cost,
     make_decode_inputs,
     matching_costs_cost,
@@ -255,6 +257,43 @@ def test_label_conv3d_backward(benchmark, impl):
         return torch.autograd.grad(out, (embed, weight), torch.ones_like(out))
 
     benchmark.pedantic(synchronized(step), rounds=rounds(3), warmup_rounds=1)
+
+
+def _norm_inputs(block: str, requires_grad: bool):
+    """An activation of the encoder (``block``: "stem" or "block", which adds a residual), its
+    GroupNorm's 8 groups' weight and bias."""
+    g = torch.Generator().manual_seed(0)
+    shape = NORM_SHAPES[block]
+    x = torch.randn(*shape, generator=g).to(DEVICE).requires_grad_(requires_grad)
+    w, b = (torch.randn(shape[1], generator=g).to(DEVICE).requires_grad_(requires_grad) for _ in range(2))
+    r = torch.randn(*shape, generator=g).to(DEVICE).requires_grad_(requires_grad) if block == "block" else None
+    return x, w, b, r
+
+
+@pytest.mark.parametrize("block", list(NORM_SHAPES))
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_group_norm_silu(benchmark, impl, block):
+    """The encoder's GroupNorm + (residual add) + SiLU of a window's six frames; the reference is
+    the three ops."""
+    x, w, b, r = _norm_inputs(block, False)
+    benchmark.group = f"group_norm_silu {block} {list(x.shape)}"
+    benchmark.extra_info.update(group_norm_silu_cost(tuple(x.shape), r is not None))
+    op = IMPLS[impl].group_norm_silu
+    benchmark.pedantic(synchronized(lambda: op(x, w, b, 8, 1e-5, r)), rounds=rounds(10), warmup_rounds=2)
+
+
+@pytest.mark.parametrize("impl", IMPL_NAMES)
+def test_group_norm_silu_backward(benchmark, impl):
+    x, w, b, r = _norm_inputs("block", True)
+    benchmark.group = f"group_norm_silu fwd+bwd block {list(x.shape)}"
+    benchmark.extra_info.update(group_norm_silu_cost(tuple(x.shape), True, backward=True))
+    op = IMPLS[impl].group_norm_silu
+
+    def step():
+        out = op(x, w, b, 8, 1e-5, r)
+        return torch.autograd.grad(out, (x, w, b, r), torch.ones_like(out))
+
+    benchmark.pedantic(synchronized(step), rounds=rounds(5), warmup_rounds=1)
 
 
 def _agent_masks() -> torch.Tensor:

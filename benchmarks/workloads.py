@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import math
 import os
 from collections.abc import Iterator
 
@@ -204,6 +205,27 @@ def matching_costs_cost(backward: bool = False) -> dict[str, float]:
     if backward:
         flops, values = flops + 2 * 3 * outputs * c, values + outputs + 4 * b * c * h * w
     return {"flops": float(flops), "bytes": float(values * FLOAT_BYTES)}
+
+
+#: the encoder's activations of the six frames of a window: the stem's at full resolution, and
+#: the residual block's at half resolution (with the block's input added)
+NORM_SHAPES = {"stem": (6, 8, *GRID), "block": (6, 16, GRID[0] // 2, GRID[1] // 2, GRID[2])}
+
+
+def group_norm_silu_cost(shape: tuple[int, ...], residual: bool, backward: bool = False) -> dict[str, float]:
+    """Forward: per value a subtraction and two multiply-adds for the statistics, a multiply-add,
+    an exponential (counted as one), an addition and a division for the output (one more
+    addition with a residual); compulsory bytes: the input (and residual) read, the output
+    written. Backward: the silu gradient and the sums (about 12 operations a value), then the
+    input's gradient (about 5); the upstream gradient and the input (and residual) read, the
+    input's (and residual's) gradient written."""
+    values = math.prod(shape)
+    flops = values * (9 + residual)
+    tensors = 2 + residual
+    if backward:
+        flops += values * 17
+        tensors += 3 + 2 * residual
+    return {"flops": float(flops), "bytes": float(tensors * values * FLOAT_BYTES)}
 
 
 def label_conv3d_cost(channels: int, backward: bool = False) -> dict[str, float]:

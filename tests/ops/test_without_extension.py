@@ -63,6 +63,14 @@ with warnings.catch_warnings(record=True) as caught:
         assert "t3fast.matching_costs: previous must have the shape of present [2, 3, 5, 4]" in str(exc), exc
     else:
         raise AssertionError("a channel mismatch was accepted")
+    x, w, b, r = torch.randn(2, 4, 5, 3), torch.randn(4), torch.randn(4), torch.randn(2, 4, 5, 3)
+    assert torch.equal(t3fast.ops.group_norm_silu(x, w, b, 2, 1e-5, r), reference.group_norm_silu(x, w, b, 2, 1e-5, r))
+    try:
+        t3fast.ops.group_norm_silu(x, w, b, 3)
+    except RuntimeError as exc:
+        assert "t3fast.group_norm_silu: groups must be a positive divisor of the 4 channels, got 3" in str(exc), exc
+    else:
+        raise AssertionError("groups not dividing the channels were accepted")
 
     # a model on the ops, against the same model on the reference decoder
     torch.manual_seed(0)

@@ -399,6 +399,16 @@ def test_group_norm_silu(cuda_ops, dtype, shape, groups, residual):
             assert_close_lowp(a, e, dtype)
 
 
+def test_group_norm_silu_of_a_large_mean(cuda_ops):
+    """The float32 sums are of the values minus the group's first one: a mean 5,000 standard
+    deviations from zero still gives the CPU kernel's (float64) statistics and output."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 4, 3000, generator=g) * 2 + 1e4
+    w, b = torch.randn(4, generator=g), torch.randn(4, generator=g)
+    got, want = cuda_ops.group_norm_silu(x, w, b, 2, 1e-5), torch.ops.t3fast.group_norm_silu(x, w, b, 2, 1e-5)
+    assert_same(got, want, 1e-4, 1e-4)
+
+
 @pytest.mark.parametrize("label_dtype", [torch.uint8, torch.int32, torch.int64])
 @pytest.mark.parametrize("shape, classes, channels", [((2, 12, 10, 6), 18, 8), ((1, 5, 1, 9), 3, 13),
                                                       ((1, 1, 1, 1), 2, 1)])

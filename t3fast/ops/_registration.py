@@ -295,9 +295,11 @@ def _group_norm_silu_fake(input, weight, bias, groups, eps, residual=None):
 def _group_norm_silu_backward_fake(grad, input, weight, bias, residual, mean, rstd, groups):
     _group_norm_silu_check("group_norm_silu_backward", input, weight, bias, residual, groups)
     _check_like("group_norm_silu_backward", "input", input, grad=grad)
-    grad_residual = torch.empty_like(residual) if residual is not None else input.new_empty((0,))
-    return (torch.empty_like(input, memory_format=torch.contiguous_format), torch.empty_like(weight),
-            torch.empty_like(bias), grad_residual)
+    contiguous = torch.contiguous_format
+    grad_residual = (torch.empty_like(residual, memory_format=contiguous) if residual is not None
+                     else input.new_empty((0,)))
+    return (torch.empty_like(input, memory_format=contiguous), torch.empty_like(weight, memory_format=contiguous),
+            torch.empty_like(bias, memory_format=contiguous), grad_residual)
 
 
 def _group_norm_silu_setup(ctx, inputs, output):
@@ -434,7 +436,8 @@ def _register_autocast(op: str, device_type: str, float32: bool = False) -> None
 
 
 # On CUDA only delta_fuse mixes an autocast output with float32 parameters: the decoder casts
-# its planes itself (it decodes in its weights' dtype) and axis_pool reads one tensor. The CUDA
+# its planes itself (it decodes in its weights' dtype) and axis_pool reads one tensor;
+# group_norm_silu computes in float32 everywhere, as group_norm under CUDA's autocast. The CUDA
 # triplane_decode has no autocast kernel: it reads the autocast dtype and runs its MLP in it,
 # keeping the planes and query points in their own precision (as grid_sample, which autocast
 # runs in float32).

@@ -102,7 +102,8 @@ def test_group_norm_silu_gradcheck_float64():
 
 def test_opcheck_group_norm_silu(device):
     x, w, b, r = inputs((2, 6, 4, 3), device)
-    for residual in (r, None):
+    strided = r.transpose(2, 3).contiguous().transpose(2, 3)  # the fake kernels' strides as the kernels'
+    for residual in (r, None, strided):
         args = (x.requires_grad_(), w.requires_grad_(), b.requires_grad_(), 3, 1e-5, residual)
         torch.library.opcheck(torch.ops.t3fast.group_norm_silu.default, args)
         _, mean, rstd = torch.ops.t3fast.group_norm_silu(*args)

@@ -301,8 +301,9 @@ inline void check_bev_mask(const at::Tensor& mask, const char* op) {
   T3FAST_CHECK(mask.scalar_type() == at::kBool, op, "mask must be bool, got ", mask.scalar_type());
 }
 
-// draw_boxes: volume uint8 [B, X, Y, Z], boxes float64 [B, M, 6], levels int64 [M, 2], labels
-// uint8 [M], all on one device; reach >= 0 columns.
+// draw_boxes: volume uint8 [B, X, Y, Z], boxes float64 [B, M, 6], levels int64 [M, 2] and labels
+// uint8 [M] (every volume's) or [B, M, 2] and [B, M] (each volume's), all on one device; reach
+// >= 0 columns.
 // The columns of a label grid in metres: lower x, y of the grid and metres per column.
 inline void check_grid_frame(c10::ArrayRef<double> lower, double voxel_size, const char* op) {
   T3FAST_CHECK(lower.size() == 2, op, "lower must hold the grid's lower x and y, got ",
@@ -322,15 +323,23 @@ inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
                boxes.scalar_type());
   check_size(boxes, op, "boxes", 0, volume.size(0), "batch, as volume");
   check_size(boxes, op, "boxes", 2, 6, "x, y, cos, sin, half length, half width");
-  check_dim(levels, op, "levels", 2, "[M, 2]");
+  T3FAST_CHECK(levels.dim() == 2 || levels.dim() == 3, op,
+               "levels must have 2 dims [M, 2] (every volume's) or 3 dims [B, M, 2] (each "
+               "volume's), got ", levels.dim(), " dims ", levels.sizes());
   T3FAST_CHECK(levels.scalar_type() == at::kLong, op, "levels must be int64, got ",
                levels.scalar_type());
-  check_size(levels, op, "levels", 0, boxes.size(1), "boxes, as boxes.shape[1]");
-  check_size(levels, op, "levels", 1, 2, "bottom, top");
-  check_dim(labels, op, "labels", 1, "[M]");
+  const bool per_volume = levels.dim() == 3;
+  const int64_t d = per_volume ? 1 : 0;
+  if (per_volume) check_size(levels, op, "levels", 0, volume.size(0), "batch, as volume");
+  check_size(levels, op, "levels", d, boxes.size(1), "boxes, as boxes.shape[1]");
+  check_size(levels, op, "levels", d + 1, 2, "bottom, top");
+  T3FAST_CHECK(labels.dim() == levels.dim() - 1, op, "labels must have ", levels.dim() - 1,
+               per_volume ? " dims [B, M], as levels is each volume's" : " dim [M], as levels is every volume's",
+               ", got ", labels.dim(), " dims ", labels.sizes());
   T3FAST_CHECK(labels.scalar_type() == at::kByte, op, "labels must be uint8, got ",
                labels.scalar_type());
-  check_size(labels, op, "labels", 0, boxes.size(1), "boxes, as boxes.shape[1]");
+  if (per_volume) check_size(labels, op, "labels", 0, volume.size(0), "batch, as volume");
+  check_size(labels, op, "labels", d, boxes.size(1), "boxes, as boxes.shape[1]");
   check_same_device(boxes, volume, op, "boxes", "volume");
   check_same_device(levels, volume, op, "levels", "volume");
   check_same_device(labels, volume, op, "labels", "volume");

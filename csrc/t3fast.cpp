@@ -69,7 +69,8 @@ TORCH_LIBRARY(t3fast, m) {
   // [B, M, 6]: centre x, y, cos and sin of its heading, half length, half width; metres in the
   // volume's frame) fills the levels levels[m, 0] <= z < levels[m, 1] of every column within
   // reach columns of its centre column whose centre lies inside its footprint, and of its centre
-  // column, with labels[m]; a later box wins where they overlap. Returns the drawn volumes.
+  // column, with labels[m]; a later box wins where they overlap. levels [B, M, 2] and labels
+  // [B, M]: each volume's boxes' own. Returns the drawn volumes.
   m.def(
       "draw_boxes(Tensor volume, Tensor boxes, Tensor levels, Tensor labels, float[] lower, "
       "float voxel_size, int reach) -> Tensor");

@@ -62,10 +62,12 @@ at::Tensor draw_boxes_cpu(const at::Tensor& volume, const at::Tensor& boxes,
   const int64_t* pv = lv.data_ptr<int64_t>();
   const uint8_t* pl = lb.data_ptr<uint8_t>();
   uint8_t* po = out.data_ptr<uint8_t>();
+  const int64_t stride = lv.dim() == 3 ? M : 0;  // boxes of levels and labels per volume
   at::parallel_for(0, B, 1, [&](int64_t b0, int64_t b1) {
     for (int64_t n = b0; n < b1; ++n) {
       for (int64_t m = 0; m < M; ++m) {
-        draw_box(pb + (n * M + m) * 6, pv[2 * m], pv[2 * m + 1], pl[m], g, reach,
+        const int64_t k = n * stride + m;
+        draw_box(pb + (n * M + m) * 6, pv[2 * k], pv[2 * k + 1], pl[k], g, reach,
                  po + n * g.X * g.Y * g.Z);
       }
     }

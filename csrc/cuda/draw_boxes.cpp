@@ -30,7 +30,7 @@ at::Tensor draw_boxes_cuda(const at::Tensor& volume, const at::Tensor& boxes,
   const at::Tensor b = boxes.contiguous(), lv = levels.contiguous(), lb = labels.contiguous();
   at::Tensor winner = at::zeros(out.sizes(), out.options().dtype(at::kInt));
   check_launch(cuda::draw_boxes(b.data_ptr<double>(), lv.data_ptr<int64_t>(),
-                                lb.data_ptr<uint8_t>(), out.size(0),
+                                lb.data_ptr<uint8_t>(), lv.dim() == 3, out.size(0),
                                 static_cast<int>(b.size(1)), static_cast<int>(out.size(1)),
                                 static_cast<int>(out.size(2)), static_cast<int>(out.size(3)),
                                 lower[0], lower[1], voxel_size, static_cast<int>(reach),

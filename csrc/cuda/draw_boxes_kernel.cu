@@ -14,9 +14,9 @@ namespace {
 
 constexpr int kThreads = 256;
 
-__global__ void cover_kernel(const double* boxes, const int64_t* levels, int64_t batch, int count,
-                             int x, int y, int z, double lower_x, double lower_y, double voxel,
-                             int reach, int* winner) {
+__global__ void cover_kernel(const double* boxes, const int64_t* levels, bool per_volume,
+                             int64_t batch, int count, int x, int y, int z, double lower_x,
+                             double lower_y, double voxel, int reach, int* winner) {
   const int side = 2 * reach + 1;
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= batch * count * side * side) return;
@@ -26,8 +26,9 @@ __global__ void cover_kernel(const double* boxes, const int64_t* levels, int64_t
   const int64_t n = nm / count;
   const int dr = cell / side - reach, dc = cell % side - reach;
   const double* box = boxes + nm * 6;
-  const int z0 = static_cast<int>(max(levels[2 * m], int64_t{0}));
-  const int z1 = static_cast<int>(min(levels[2 * m + 1], static_cast<int64_t>(z)));
+  const int64_t k = per_volume ? nm : m;  // the box's levels
+  const int z0 = static_cast<int>(max(levels[2 * k], int64_t{0}));
+  const int z1 = static_cast<int>(min(levels[2 * k + 1], static_cast<int64_t>(z)));
   if (z0 >= z1) return;
   const double bx = box[0], by = box[1], c = box[2], s = box[3];
   const int64_t r = static_cast<int64_t>(floor(__ddiv_rn(__dsub_rn(bx, lower_x), voxel))) + dr;
@@ -45,26 +46,27 @@ __global__ void cover_kernel(const double* boxes, const int64_t* levels, int64_t
   for (int level = z0; level < z1; ++level) atomicMax(column + level, m + 1);
 }
 
-__global__ void paint_kernel(const int* winner, const uint8_t* labels, int64_t voxels,
-                             uint8_t* out) {
+__global__ void paint_kernel(const int* winner, const uint8_t* labels, int64_t labels_stride,
+                             int64_t volume_voxels, int64_t voxels, uint8_t* out) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (i < voxels && winner[i] > 0) out[i] = labels[winner[i] - 1];
+  if (i < voxels && winner[i] > 0) out[i] = labels[i / volume_voxels * labels_stride + winner[i] - 1];
 }
 
 }  // namespace
 
 cudaError_t draw_boxes(const double* boxes, const int64_t* levels, const uint8_t* labels,
-                       int64_t batch, int count, int x, int y, int z, double lower_x,
-                       double lower_y, double voxel, int reach, int* winner, uint8_t* out,
-                       cudaStream_t stream) {
+                       bool per_volume, int64_t batch, int count, int x, int y, int z,
+                       double lower_x, double lower_y, double voxel, int reach, int* winner,
+                       uint8_t* out, cudaStream_t stream) {
   const int64_t side = 2 * static_cast<int64_t>(reach) + 1;
   const int64_t threads = batch * count * side * side, voxels = batch * x * y * z;
   if (threads == 0 || voxels == 0) return cudaSuccess;
   cover_kernel<<<static_cast<unsigned>((threads + kThreads - 1) / kThreads), kThreads, 0,
-                 stream>>>(boxes, levels, batch, count, x, y, z, lower_x, lower_y, voxel, reach,
-                           winner);
+                 stream>>>(boxes, levels, per_volume, batch, count, x, y, z, lower_x, lower_y,
+                           voxel, reach, winner);
   paint_kernel<<<static_cast<unsigned>((voxels + kThreads - 1) / kThreads), kThreads, 0,
-                 stream>>>(winner, labels, voxels, out);
+                 stream>>>(winner, labels, per_volume ? count : 0,
+                           static_cast<int64_t>(x) * y * z, voxels, out);
   return cudaGetLastError();
 }
 

@@ -290,12 +290,13 @@ cudaError_t bev_component_roots(const bool* mask, int64_t batch, int x, int y, i
 // Boxes painted into out [batch, x, y, z] (uint8, holding the volumes to draw into): box m of
 // batch element n (boxes [batch, count, 6]: x, y, cos, sin, half length, half width) covers the
 // columns within reach of its centre column that lie inside its footprint (and its centre
-// column) over levels [levels[m, 0], levels[m, 1]); winner [batch * x * y * z] (int32, zeroed)
-// keeps the last box of each voxel, whose label is then written.
+// column) over levels [levels[m, 0], levels[m, 1]) with labels[m] (per_volume: levels
+// [batch, count, 2] and labels [batch, count], those of (n, m)); winner [batch * x * y * z]
+// (int32, zeroed) keeps the last box of each voxel, whose label is then written.
 cudaError_t draw_boxes(const double* boxes, const int64_t* levels, const uint8_t* labels,
-                       int64_t batch, int count, int x, int y, int z, double lower_x,
-                       double lower_y, double voxel, int reach, int* winner, uint8_t* out,
-                       cudaStream_t stream);
+                       bool per_volume, int64_t batch, int count, int x, int y, int z,
+                       double lower_x, double lower_y, double voxel, int reach, int* winner,
+                       uint8_t* out, cudaStream_t stream);
 
 // ------------------------------------------------------------------ box_fit
 

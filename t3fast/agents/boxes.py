@@ -197,21 +197,27 @@ def draw_agent_boxes(volume: Tensor, centre: Tensor, yaw: Tensor, length: Tensor
     ``[..., m, 2]``, yaw ``[..., m]`` in the present frame, metres; length, width ``[m]``) fills
     the levels ``bottom[i]`` to ``top[i]`` (exclusive) of every column whose centre lies inside
     its footprint, and the column under its centre, with ``label[i]``; where boxes overlap, the
-    later one's. ``pose`` ``[..., 3]``: each volume's ego pose in the present frame (the boxes are
-    taken into it); the leading dims (a forecast's steps, say) are drawn in one call. The
-    footprint test is :func:`~t3fast.data.classes.box_footprint`'s, for all boxes at once on
-    the volume's device (:func:`t3fast.ops.draw_boxes`), within ``DRAW_REACH`` columns of each
-    box's centre column."""
+    later one's. Length, width, bottom, top and label ``[m]`` are every volume's; ``[..., m]``
+    (broadcast to the volumes' leading dims), each volume's: several windows' boxes at once.
+    ``pose`` ``[..., 3]``: each volume's ego pose in the present frame (the boxes are taken into
+    it); the leading dims (a forecast's steps, say) are drawn in one call. The footprint test is
+    :func:`~t3fast.data.classes.box_footprint`'s, for all boxes at once on the volume's device
+    (:func:`t3fast.ops.draw_boxes`), within ``DRAW_REACH`` columns of each box's centre column."""
     device = volume.device
     frames = volume.reshape(-1, *volume.shape[-3:])
+    lead = volume.shape[:-3]
+
+    def each_volume(t: Tensor) -> Tensor:  # [m] stays every volume's; [..., m] becomes [B, m]
+        return t.to(device) if t.dim() == 1 else t.to(device).expand(*lead, t.shape[-1]).reshape(frames.shape[0], -1)
+
     pose = pose.to(device, torch.float64).reshape(frames.shape[0], 3)
     c, s = torch.cos(pose[:, 2:]), torch.sin(pose[:, 2:])  # [B, 1]
     d = centre.to(device, torch.float64).reshape(frames.shape[0], -1, 2) - pose[:, None, :2]
     heading = yaw.to(device, torch.float64).reshape(frames.shape[0], -1) - pose[:, 2:]
-    half = torch.stack([length, width], -1).to(device, torch.float64).expand_as(d) / 2
+    half = torch.stack([each_volume(length), each_volume(width)], -1).to(torch.float64).expand_as(d) / 2
     boxes = torch.cat([torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
                                     torch.cos(heading), torch.sin(heading)], -1), half], -1)
-    levels = torch.stack([bottom, top], -1).to(device, torch.long)
-    drawn = ops.draw_boxes(frames, boxes, levels, label.to(device, torch.uint8), GRID_LOWER[:2], VOXEL_SIZE,
+    levels = torch.stack([each_volume(bottom), each_volume(top)], -1).to(torch.long)
+    drawn = ops.draw_boxes(frames, boxes, levels, each_volume(label).to(torch.uint8), GRID_LOWER[:2], VOXEL_SIZE,
                            DRAW_REACH)
     volume.copy_(drawn.view(volume.shape))

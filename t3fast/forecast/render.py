@@ -12,10 +12,12 @@ Three renderers, one per kind of model (chosen by :mod:`t3fast.forecast.pipeline
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import torch
 from torch import Tensor, nn
 
-from t3fast.agents.boxes import draw_agent_boxes
+from t3fast.agents.boxes import AgentBoxes, draw_agent_boxes
 from t3fast.agents.tracker import move_agents
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, in_classes
 from t3fast.forecast.records import AgentMoves, Past, Scene
@@ -197,9 +199,15 @@ class DrawAgents:
             scenes = move_agents(present, agents, shift, FREE, keep=~torch.stack([m.as_box for m in moves]))
         labels = unwarp_sequence(scenes, poses, fill=IGNORE)  # the agents drawn as boxes left their voxels
         self._fill_unseen(labels, scene.futures, poses)
-        for n, move in enumerate(moves):
-            if move.box_poses is not None:
-                self._draw_boxes(labels[n], move, poses[n])
+        if reads_host(present.device):  # each window's boxes, as many as it has
+            for n, move in enumerate(moves):
+                if move.box_poses is not None:
+                    self._draw_boxes(labels[n], move.boxes, move.as_box, move.box_poses, poses[n])
+        elif moves[0].box_poses is not None:  # in fixed slots: every window's boxes in one call
+            fields = ("length", "width", "bottom", "top", "label")
+            boxes = SimpleNamespace(**{k: torch.stack([getattr(m.boxes, k) for m in moves]) for k in fields})
+            self._draw_boxes(labels, boxes, torch.stack([m.as_box for m in moves]),
+                             torch.stack([m.box_poses for m in moves]), poses)
         return labels
 
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
@@ -230,11 +238,15 @@ class DrawAgents:
                     frame[unseen] = beyond_present(decoded.view(-1))
 
     @staticmethod
-    def _draw_boxes(frames: Tensor, move: AgentMoves, poses: Tensor) -> None:
-        """One sample's drawn boxes into its frames ``[S, X, Y, Z]`` at their poses ``[S, 3]``, all
-        steps in one call. A box not drawn spans no level (its top is its bottom): the boxes keep
-        their order, and no mask selects them (which would read it on the host)."""
-        box = move.boxes
-        top = torch.where(move.as_box, box.top, box.bottom)
-        draw_agent_boxes(frames, move.box_poses[..., :2], move.box_poses[..., 2], box.length, box.width, box.bottom,
-                         top, box.label, poses)
+    def _draw_boxes(frames: Tensor, boxes: AgentBoxes | SimpleNamespace, as_box: Tensor, box_poses: Tensor,
+                    poses: Tensor) -> None:
+        """Drawn boxes into frames ``[..., S, X, Y, Z]`` at their poses ``[..., S, 3]``, all steps in
+        one call: one window's (``boxes``' sizes, levels and labels and ``as_box`` ``[n]``,
+        ``box_poses`` ``[S, n, 3]``) or several windows' (a leading dim on each). A box not drawn
+        spans no level (its top is its bottom): the boxes keep their order, and no mask selects them
+        (which would read it on the host)."""
+        top = torch.where(as_box, boxes.top, boxes.bottom)
+        # several windows' box attributes [N, n]: the same at each of a window's steps
+        steps = (lambda t: t) if as_box.dim() == 1 else (lambda t: t[..., None, :])
+        draw_agent_boxes(frames, box_poses[..., :2], box_poses[..., 2], steps(boxes.length), steps(boxes.width),
+                         steps(boxes.bottom), steps(top), steps(boxes.label), poses)

@@ -272,8 +272,9 @@ def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lo
         volume: uint8 ``[B, X, Y, Z]`` labels to draw into (not modified).
         boxes: float64 ``[B, M, 6]``: centre x, y, the cosine and sine of the heading, half the
             length, half the width (metres, in the volume's frame).
-        levels: int64 ``[M, 2]``: bottom (inclusive) and top (exclusive) level of each box.
-        labels: uint8 ``[M]``: each box's class.
+        levels: int64 ``[M, 2]``: bottom (inclusive) and top (exclusive) level of each box; or
+            ``[B, M, 2]``, each volume's boxes' own (several windows' boxes in one call).
+        labels: uint8 ``[M]``: each box's class; ``[B, M]`` with ``[B, M, 2]`` levels.
         lower: the grid's lower x and y (metres); voxel_size: metres per column.
         reach: how many columns from the centre column are tested.
 

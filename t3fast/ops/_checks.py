@@ -280,13 +280,22 @@ def check_draw_boxes(volume: torch.Tensor, boxes: torch.Tensor, levels: torch.Te
     _require(boxes.dtype == torch.float64, op, f"boxes must be float64, got {_dtype_name(boxes.dtype)}")
     _check_size(boxes, op, "boxes", 0, volume.shape[0], "batch, as volume")
     _check_size(boxes, op, "boxes", 2, 6, "x, y, cos, sin, half length, half width")
-    _check_dim(levels, op, "levels", 2, "[M, 2]")
+    _require(levels.dim() in (2, 3), op, "levels must have 2 dims [M, 2] (every volume's) or 3 dims [B, M, 2] "
+             f"(each volume's), got {levels.dim()} dims {list(levels.shape)}")
     _require(levels.dtype == torch.int64, op, f"levels must be int64, got {_dtype_name(levels.dtype)}")
-    _check_size(levels, op, "levels", 0, boxes.shape[1], "boxes, as boxes.shape[1]")
-    _check_size(levels, op, "levels", 1, 2, "bottom, top")
-    _check_dim(labels, op, "labels", 1, "[M]")
+    per_volume = levels.dim() == 3
+    d = int(per_volume)
+    if per_volume:
+        _check_size(levels, op, "levels", 0, volume.shape[0], "batch, as volume")
+    _check_size(levels, op, "levels", d, boxes.shape[1], "boxes, as boxes.shape[1]")
+    _check_size(levels, op, "levels", d + 1, 2, "bottom, top")
+    form = " dims [B, M], as levels is each volume's" if per_volume else " dim [M], as levels is every volume's"
+    _require(labels.dim() == levels.dim() - 1, op,
+             f"labels must have {levels.dim() - 1}{form}, got {labels.dim()} dims {list(labels.shape)}")
     _require(labels.dtype == torch.uint8, op, f"labels must be uint8, got {_dtype_name(labels.dtype)}")
-    _check_size(labels, op, "labels", 0, boxes.shape[1], "boxes, as boxes.shape[1]")
+    if per_volume:
+        _check_size(labels, op, "labels", 0, volume.shape[0], "batch, as volume")
+    _check_size(labels, op, "labels", d, boxes.shape[1], "boxes, as boxes.shape[1]")
     for name, t in (("boxes", boxes), ("levels", levels), ("labels", labels)):
         _check_device(t, volume, op, name, "volume")
     _check_grid_frame(lower, voxel_size, op)

@@ -210,8 +210,9 @@ def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lo
         volume: uint8 ``[B, X, Y, Z]``.
         boxes: float64 ``[B, M, 6]``: centre x, y, the cosine and sine of the heading, half the
             length, half the width (metres, in the volume's frame).
-        levels: int64 ``[M, 2]``: the levels ``bottom <= z < top`` each box fills.
-        labels: uint8 ``[M]``.
+        levels: int64 ``[M, 2]``: the levels ``bottom <= z < top`` each box fills; or
+            ``[B, M, 2]``, each volume's.
+        labels: uint8 ``[M]``, or ``[B, M]`` with ``[B, M, 2]`` levels.
         lower: the grid's lower x and y (metres); voxel_size: metres per column.
         reach: columns from the centre column tested along each axis.
 
@@ -234,14 +235,17 @@ def draw_boxes(volume: Tensor, boxes: Tensor, levels: Tensor, labels: Tensor, lo
     inside[..., reach, reach] = True  # the column under the centre: small agents never vanish
     inside &= ((rows >= 0) & (rows < nx))[..., :, None] & ((cols >= 0) & (cols < ny))[..., None, :]
     z = torch.arange(nz, device=device)
-    spans = (z >= levels[:, :1]) & (z < levels[:, 1:])  # [M, Z]
-    cover = inside[..., None] & spans[:, None, None, :]  # [B, M, W, W, Z]
+    spans = (z >= levels[..., :1]) & (z < levels[..., 1:])  # [M, Z], or [B, M, Z] per volume
+    cover = inside[..., None] & spans[..., :, None, None, :]  # [B, M, W, W, Z]
     column = rows.clamp(0, nx - 1)[..., :, None] * ny + cols.clamp(0, ny - 1)[..., None, :]  # [B, M, W, W]
     batch = torch.arange(b, device=device).view(b, 1, 1, 1, 1) * (nx * ny * nz)
     voxel = batch + column[..., None] * nz + z
     number = torch.arange(1, m + 1, device=device).view(1, m, 1, 1, 1) * cover  # 0 where a box does not draw
     winner = torch.zeros(b * nx * ny * nz, dtype=torch.long, device=device).scatter_reduce_(
         0, voxel.flatten(), number.flatten(), "amax").view(volume.shape)
+    if labels.dim() == 2:  # each volume's: the volume's row of labels
+        labels = labels.flatten()
+        winner = torch.where(winner > 0, winner + torch.arange(b, device=device).view(b, 1, 1, 1) * m, 0)
     return torch.where(winner > 0, labels[(winner - 1).clamp(min=0)], volume)
 
 

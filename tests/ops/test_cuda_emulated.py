@@ -442,6 +442,10 @@ def test_draw_boxes(cuda_ops, batch, count, shape, reach):
     volume, boxes, levels, labels = draw_cases.make(batch, count, shape)
     args = (boxes, levels, labels, [-10.0, -10.0], draw_cases.VOXEL, reach)
     assert_same(cuda_ops.draw_boxes(volume, *args), torch.ops.t3fast.draw_boxes(volume, *args))
+    # each volume its own levels and labels (shifted per volume, so that they differ)
+    each = (boxes, torch.stack([(levels + n) % shape[2] for n in range(batch)]),
+            torch.stack([(labels + n) % 18 for n in range(batch)]), [-10.0, -10.0], draw_cases.VOXEL, reach)
+    assert_same(cuda_ops.draw_boxes(volume, *each), torch.ops.t3fast.draw_boxes(volume, *each))
 
 
 @pytest.mark.parametrize("iters, near", [(0, 1), (3, 1), (3, 2)])

@@ -43,6 +43,26 @@ def test_matches_reference(device, batch, count, shape, reach):
     assert got.dtype == torch.uint8 and got.shape == volume.shape and torch.equal(got, want)
 
 
+@pytest.mark.parametrize("batch, count, shape, reach", [(3, 40, (200, 200, 16), 26), (2, 25, (17, 9, 5), 3),
+                                                        (0, 4, (10, 10, 4), 2)])
+def test_each_volume_its_own_levels_and_labels(device, batch, count, shape, reach):
+    """levels [B, M, 2] and labels [B, M]: several windows' boxes in one call, each volume as if
+    drawn alone with its own, and as the reference draws them."""
+    volume, boxes, _, _ = make(batch, count, shape, device=device)
+    g = torch.Generator().manual_seed(1)
+    bottom = torch.randint(-2, shape[2], (batch, count), generator=g)
+    levels = torch.stack([bottom, bottom + torch.randint(0, 9, (batch, count), generator=g)], -1).to(device)
+    labels = torch.randint(0, 18, (batch, count), generator=g, dtype=torch.uint8).to(device)
+    got = draw_boxes(volume, boxes, levels, labels, LOWER, VOXEL, reach)
+    assert torch.equal(got, reference.draw_boxes(volume, boxes, levels, labels, LOWER, VOXEL, reach))
+    for n in range(batch):
+        alone = draw_boxes(volume[n : n + 1], boxes[n : n + 1], levels[n], labels[n], LOWER, VOXEL, reach)
+        assert torch.equal(got[n : n + 1], alone)
+    if batch > 1:  # the volumes' levels differ: the same boxes with the first volume's draw otherwise
+        shared = draw_boxes(volume, boxes, levels[0], labels[0], LOWER, VOXEL, reach)
+        assert not torch.equal(got[1:], shared[1:])
+
+
 def test_a_box_fills_the_columns_whose_centres_it_covers_over_its_levels():
     volume = torch.zeros(1, 10, 10, 4, dtype=torch.uint8)
     # a box 1.22 m long along x and 0.42 m wide at the centre of column (4, 5): rows 3 to 5 of column 5

@@ -12,12 +12,10 @@ Three renderers, one per kind of model (chosen by :mod:`t3fast.forecast.pipeline
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import torch
 from torch import Tensor, nn
 
-from t3fast.agents.boxes import AgentBoxes, draw_agent_boxes
+from t3fast.agents.boxes import draw_agent_boxes
 from t3fast.agents.tracker import move_agents
 from t3fast.data.classes import AGENT_CLASSES, FLAT_GROUND_CLASSES, FREE, IGNORE, in_classes
 from t3fast.forecast.records import AgentMoves, Past, Scene
@@ -202,12 +200,12 @@ class DrawAgents:
         if reads_host(present.device):  # each window's boxes, as many as it has
             for n, move in enumerate(moves):
                 if move.box_poses is not None:
-                    self._draw_boxes(labels[n], move.boxes, move.as_box, move.box_poses, poses[n])
+                    self._draw_boxes(labels[n], move.box_poses, move.as_box,
+                                     *(getattr(move.boxes, k) for k in self.BOX_FIELDS), poses[n])
         elif moves[0].box_poses is not None:  # in fixed slots: every window's boxes in one call
-            fields = ("length", "width", "bottom", "top", "label")
-            boxes = SimpleNamespace(**{k: torch.stack([getattr(m.boxes, k) for m in moves]) for k in fields})
-            self._draw_boxes(labels, boxes, torch.stack([m.as_box for m in moves]),
-                             torch.stack([m.box_poses for m in moves]), poses)
+            fields = (torch.stack([getattr(m.boxes, k) for m in moves]) for k in self.BOX_FIELDS)
+            self._draw_boxes(labels, torch.stack([m.box_poses for m in moves]), torch.stack([m.as_box for m in moves]),
+                             *fields, poses)
         return labels
 
     def _fill_unseen(self, labels: Tensor, futures: list[Triplane], poses: Tensor) -> None:
@@ -237,16 +235,19 @@ class DrawAgents:
                     decoded = self.decoder.predict(future.map(lambda p, n=n: p[n : n + 1]), points)
                     frame[unseen] = beyond_present(decoded.view(-1))
 
+    #: what the render reads of a window's fitted boxes (:class:`~t3fast.agents.boxes.AgentBoxes`)
+    BOX_FIELDS = ("length", "width", "bottom", "top", "label")
+
     @staticmethod
-    def _draw_boxes(frames: Tensor, boxes: AgentBoxes | SimpleNamespace, as_box: Tensor, box_poses: Tensor,
-                    poses: Tensor) -> None:
+    def _draw_boxes(frames: Tensor, box_poses: Tensor, as_box: Tensor, length: Tensor, width: Tensor, bottom: Tensor,
+                    top: Tensor, label: Tensor, poses: Tensor) -> None:
         """Drawn boxes into frames ``[..., S, X, Y, Z]`` at their poses ``[..., S, 3]``, all steps in
-        one call: one window's (``boxes``' sizes, levels and labels and ``as_box`` ``[n]``,
+        one call: one window's (``as_box`` and the boxes' sizes, levels and labels ``[n]``,
         ``box_poses`` ``[S, n, 3]``) or several windows' (a leading dim on each). A box not drawn
         spans no level (its top is its bottom): the boxes keep their order, and no mask selects them
         (which would read it on the host)."""
-        top = torch.where(as_box, boxes.top, boxes.bottom)
+        top = torch.where(as_box, top, bottom)
         # several windows' box attributes [N, n]: the same at each of a window's steps
         steps = (lambda t: t) if as_box.dim() == 1 else (lambda t: t[..., None, :])
-        draw_agent_boxes(frames, box_poses[..., :2], box_poses[..., 2], steps(boxes.length), steps(boxes.width),
-                         steps(boxes.bottom), steps(top), steps(boxes.label), poses)
+        draw_agent_boxes(frames, box_poses[..., :2], box_poses[..., 2], steps(length), steps(width), steps(bottom),
+                         steps(top), steps(label), poses)

@@ -49,6 +49,12 @@ inline void check_float_dtype(const at::Tensor& t, const char* op, const char* n
   }
 }
 
+// The dtype the kernels accumulate a tensor's values in: float64 for float64, float32 otherwise
+// (float16 and bfloat16 included).
+inline at::ScalarType accumulation_dtype(const at::Tensor& t) {
+  return t.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+}
+
 // Sizes of a volume [B, C, X, Y, Z], which are also the sizes of its three axis planes
 // xy [B, C, X, Y], xz [B, C, X, Z], yz [B, C, Y, Z].
 struct VolumeShape {
@@ -241,7 +247,7 @@ inline GroupNormShape check_group_norm_silu_backward(
   check_same_dtype(grad, input, op, "grad", "input");
   T3FAST_CHECK(grad.sizes() == input.sizes(), op, "grad must have the shape of input ",
                input.sizes(), ", got ", grad.sizes());
-  const auto acc = input.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  const auto acc = accumulation_dtype(input);
   for (const auto* t : {&mean, &rstd}) {
     const char* name = t == &mean ? "mean" : "rstd";
     check_same_device(*t, input, op, name, "input");
@@ -334,7 +340,8 @@ inline void check_draw_boxes(const at::Tensor& volume, const at::Tensor& boxes,
   check_size(levels, op, "levels", d, boxes.size(1), "boxes, as boxes.shape[1]");
   check_size(levels, op, "levels", d + 1, 2, "bottom, top");
   T3FAST_CHECK(labels.dim() == levels.dim() - 1, op, "labels must have ", levels.dim() - 1,
-               per_volume ? " dims [B, M], as levels is each volume's" : " dim [M], as levels is every volume's",
+               per_volume ? " dims [B, M], as levels is each volume's"
+                          : " dim [M], as levels is every volume's",
                ", got ", labels.dim(), " dims ", labels.sizes());
   T3FAST_CHECK(labels.scalar_type() == at::kByte, op, "labels must be uint8, got ",
                labels.scalar_type());

@@ -52,12 +52,34 @@ inline float exp_of(float v) {
 }
 inline double exp_of(double v) { return std::exp(v); }
 
-// The task grid: chunk k of row (b, c) is task (b * C + c) * chunks + k.
-struct Chunks {
-  int64_t per_row, size;
-  explicit Chunks(int64_t S) : per_row(std::max<int64_t>(1, (S + kChunk - 1) / kChunk)), size(kChunk) {}
-  int64_t begin(int64_t k) const { return k * size; }
+// The chunks of a (batch, channel) row of S values; chunk k of row (b, c) is task
+// (b * C + c) * chunks_per_row(S) + k.
+int64_t chunks_per_row(int64_t S) { return std::max<int64_t>(1, (S + kChunk - 1) / kChunk); }
+
+// fn(task, row, begin, n) for every chunk [begin, begin + n) of the rows, in parallel.
+template <typename F>
+void for_each_chunk(int64_t rows, int64_t S, const F& fn) {
+  const int64_t per_row = chunks_per_row(S);
+  at::parallel_for(0, rows * per_row, 1, [&](int64_t t0, int64_t t1) {
+    for (int64_t t = t0; t < t1; ++t) {
+      const int64_t row = t / per_row, begin = t % per_row * kChunk;
+      fn(t, row, begin, std::min(kChunk, S - begin));
+    }
+  });
+}
+
+// A row's normalisation and affine transform as one: (x - mean) * rstd * w + bias = x * a + shift.
+template <typename T>
+struct RowAffine {
+  T a, shift;
 };
+template <typename T>
+RowAffine<T> row_affine(const T* w, const T* bias, const T* mean, const T* rstd, int64_t row,
+                        const GroupNormShape& s) {
+  const int64_t c = row % s.C, bg = row / s.Cg;
+  const T a = rstd[bg] * w[c];
+  return {a, bias[c] - mean[bg] * a};
+}
 
 // (sum of d, sum of d^2) of d = x - shift over n values.
 template <typename T>
@@ -132,33 +154,18 @@ T3FAST_SIMD_CLONES void input_grads(const T* g, const T* x, T w, T mean, T rstd,
   for (int64_t i = 0; i < n; ++i) dx[i] = rstd * (g[i] * w - m1 - (x[i] - mean) * rstd * m2);
 }
 
-// Each row's chunks' sums (2 per chunk) in the buffer ``sums``, from ``chunk_sums(row, begin, n,
-// out)`` run in parallel over the chunks.
-template <typename F>
-void sum_chunks(int64_t rows, const Chunks& ch, int64_t S, std::vector<double>& sums,
-                const F& chunk_sums) {
-  sums.assign(rows * ch.per_row * 2, 0.0);
-  at::parallel_for(0, rows * ch.per_row, 1, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      const int64_t row = t / ch.per_row, begin = ch.begin(t % ch.per_row);
-      chunk_sums(row, begin, std::min(ch.size, S - begin), &sums[t * 2]);
-    }
-  });
-}
-
 template <typename T>
 void forward(const T* x, const T* w, const T* bias, const T* r, T* y, T* mean, T* rstd,
              const GroupNormShape& s, double eps) {
-  const Chunks ch(s.S);
-  const int64_t rows = s.B * s.C, group_size = s.Cg * s.S;
-  std::vector<double> sums;
-  sum_chunks(rows, ch, s.S, sums, [&](int64_t row, int64_t begin, int64_t n, double* out) {
-    const int64_t first = row / s.Cg * group_size;  // the group's first value
-    shifted_sums(x + row * s.S + begin, n, static_cast<double>(x[first]), out);
+  const int64_t rows = s.B * s.C, per_row = chunks_per_row(s.S), group_size = s.Cg * s.S;
+  std::vector<double> sums(rows * per_row * 2);  // per chunk: (sum of d, sum of d^2)
+  for_each_chunk(rows, s.S, [&](int64_t t, int64_t row, int64_t begin, int64_t n) {
+    const double first = static_cast<double>(x[row / s.Cg * group_size]);  // the group's first value
+    shifted_sums(x + row * s.S + begin, n, first, &sums[t * 2]);
   });
-  for (int64_t bg = 0; bg < s.B * s.G; ++bg) {
+  for (int64_t bg = 0; bg < s.B * s.G; ++bg) {  // the group's rows, hence chunks, are consecutive
     double s1 = 0.0, s2 = 0.0;
-    for (int64_t t = bg * s.Cg * ch.per_row; t < (bg + 1) * s.Cg * ch.per_row; ++t) {
+    for (int64_t t = bg * s.Cg * per_row; t < (bg + 1) * s.Cg * per_row; ++t) {
       s1 += sums[t * 2];
       s2 += sums[t * 2 + 1];
     }
@@ -167,45 +174,37 @@ void forward(const T* x, const T* w, const T* bias, const T* r, T* y, T* mean, T
     mean[bg] = static_cast<T>(static_cast<double>(x[bg * group_size]) + m);
     rstd[bg] = static_cast<T>(1.0 / std::sqrt(var + eps));
   }
-  at::parallel_for(0, rows * ch.per_row, 1, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      const int64_t row = t / ch.per_row, c = row % s.C, bg = row / s.Cg;
-      const int64_t begin = ch.begin(t % ch.per_row), n = std::min(ch.size, s.S - begin);
-      const T a = rstd[bg] * w[c];
-      const T shift = bias[c] - mean[bg] * a;
-      const int64_t off = row * s.S + begin;
-      scale_shift_silu(x + off, r != nullptr ? r + off : nullptr, a, shift, n, y + off);
-    }
+  for_each_chunk(rows, s.S, [&](int64_t, int64_t row, int64_t begin, int64_t n) {
+    const RowAffine<T> f = row_affine(w, bias, mean, rstd, row, s);
+    const int64_t off = row * s.S + begin;
+    scale_shift_silu(x + off, r != nullptr ? r + off : nullptr, f.a, f.shift, n, y + off);
   });
 }
 
 template <typename T>
 void backward(const T* dy, const T* x, const T* w, const T* bias, const T* r, const T* mean,
               const T* rstd, T* dx, T* dw, T* db, T* dr, const GroupNormShape& s) {
-  const Chunks ch(s.S);
-  const int64_t rows = s.B * s.C;
-  // dr (or, without a residual, a scratch row per task) holds silu's gradient g
-  std::vector<T> scratch(dr == nullptr ? static_cast<size_t>(at::get_num_threads() * ch.size) : 0);
-  auto silu_grad = [&](int64_t row, int64_t begin, int64_t n, T* g) {
-    const int64_t c = row % s.C, bg = row / s.Cg, off = row * s.S + begin;
-    const T a = rstd[bg] * w[c];
-    silu_grads(dy + off, x + off, r != nullptr ? r + off : nullptr, a, bias[c] - mean[bg] * a, n, g);
+  const int64_t rows = s.B * s.C, per_row = chunks_per_row(s.S);
+  // silu's gradient g of a chunk, written to dr (the residual's gradient) or, without a
+  // residual, to the thread's scratch row
+  std::vector<T> scratch(dr == nullptr ? static_cast<size_t>(at::get_num_threads() * kChunk) : 0);
+  auto chunk_silu_grads = [&](int64_t row, int64_t begin, int64_t n) -> T* {
+    const int64_t off = row * s.S + begin;
+    T* g = dr != nullptr ? dr + off : scratch.data() + at::get_thread_num() * kChunk;
+    const RowAffine<T> f = row_affine(w, bias, mean, rstd, row, s);
+    silu_grads(dy + off, x + off, r != nullptr ? r + off : nullptr, f.a, f.shift, n, g);
+    return g;
   };
-  auto g_of = [&](int64_t row, int64_t begin) -> T* {
-    return dr != nullptr ? dr + row * s.S + begin : scratch.data() + at::get_thread_num() * ch.size;
-  };
-  std::vector<double> sums;  // per chunk: sum of g, sum of g * xhat
-  sum_chunks(rows, ch, s.S, sums, [&](int64_t row, int64_t begin, int64_t n, double* out) {
-    T* g = g_of(row, begin);
-    silu_grad(row, begin, n, g);
+  std::vector<double> sums(rows * per_row * 2);  // per chunk: sum of g, sum of g * xhat
+  for_each_chunk(rows, s.S, [&](int64_t t, int64_t row, int64_t begin, int64_t n) {
     const int64_t bg = row / s.Cg;
-    grad_sums(g, x + row * s.S + begin, static_cast<double>(mean[bg]),
-              static_cast<double>(rstd[bg]), n, out);
+    grad_sums(chunk_silu_grads(row, begin, n), x + row * s.S + begin, static_cast<double>(mean[bg]),
+              static_cast<double>(rstd[bg]), n, &sums[t * 2]);
   });
   std::vector<double> row_sums(rows * 2, 0.0);  // per (b, c), chunks added in order
-  for (int64_t t = 0; t < rows * ch.per_row; ++t) {
-    row_sums[t / ch.per_row * 2] += sums[t * 2];
-    row_sums[t / ch.per_row * 2 + 1] += sums[t * 2 + 1];
+  for (int64_t t = 0; t < rows * per_row; ++t) {
+    row_sums[t / per_row * 2] += sums[t * 2];
+    row_sums[t / per_row * 2 + 1] += sums[t * 2 + 1];
   }
   for (int64_t c = 0; c < s.C; ++c) {
     double sw = 0.0, sb = 0.0;
@@ -228,15 +227,11 @@ void backward(const T* dy, const T* x, const T* w, const T* bias, const T* r, co
     m1[bg] = static_cast<T>(a1 / group_size);
     m2[bg] = static_cast<T>(a2 / group_size);
   }
-  at::parallel_for(0, rows * ch.per_row, 1, [&](int64_t t0, int64_t t1) {
-    for (int64_t t = t0; t < t1; ++t) {
-      const int64_t row = t / ch.per_row, c = row % s.C, bg = row / s.Cg;
-      const int64_t begin = ch.begin(t % ch.per_row), n = std::min(ch.size, s.S - begin);
-      T* g = g_of(row, begin);
-      if (dr == nullptr) silu_grad(row, begin, n, g);  // the scratch row was reused
-      const int64_t off = row * s.S + begin;
-      input_grads(g, x + off, w[c], mean[bg], rstd[bg], m1[bg], m2[bg], n, dx + off);
-    }
+  for_each_chunk(rows, s.S, [&](int64_t, int64_t row, int64_t begin, int64_t n) {
+    const int64_t c = row % s.C, bg = row / s.Cg, off = row * s.S + begin;
+    // with a residual, g is still in dr; the scratch rows were reused by other chunks
+    const T* g = dr != nullptr ? dr + off : chunk_silu_grads(row, begin, n);
+    input_grads(g, x + off, w[c], mean[bg], rstd[bg], m1[bg], m2[bg], n, dx + off);
   });
 }
 

@@ -44,7 +44,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> axis_pool_cuda(const at::Tensor& 
   at::Tensor workspace;
   if (plan.workspace_elems > 0) {
     workspace =
-        at::empty({plan.workspace_elems}, v.options().dtype(dbl ? at::kDouble : at::kFloat));
+        at::empty({plan.workspace_elems}, v.options().dtype(accumulation_dtype(v)));
   }
   const cudaStream_t stream = current_stream(device);
   cudaError_t err = cudaSuccess;

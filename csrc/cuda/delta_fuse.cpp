@@ -63,7 +63,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> delta_fuse_backward_cuda(
   const at::Tensor pv = prev.detach().contiguous();
   const at::Tensor w = weight.detach().contiguous();
   at::Tensor grad_prev = at::empty(pv.sizes(), pv.options());
-  const auto acc_opts = pv.options().dtype(dbl ? at::kDouble : at::kFloat);
+  const auto acc_opts = pv.options().dtype(accumulation_dtype(pv));
   at::Tensor gw = at::zeros({C, Cin}, acc_opts);
   at::Tensor gb = at::zeros({C}, acc_opts);
   if (B * HW > 0) {

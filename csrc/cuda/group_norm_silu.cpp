@@ -20,10 +20,6 @@ namespace {
 constexpr const char* kOp = "group_norm_silu";
 constexpr const char* kOpBwd = "group_norm_silu_backward";
 
-at::ScalarType acc_dtype(const at::Tensor& t) {
-  return t.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
-}
-
 std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_silu_cuda(
     const at::Tensor& input, const at::Tensor& weight, const at::Tensor& bias, int64_t groups,
     double eps, const c10::optional<at::Tensor>& residual) {
@@ -33,7 +29,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> group_norm_silu_cuda(
   const at::Tensor w = weight.detach().contiguous(), b = bias.detach().contiguous();
   const at::Tensor r = residual.has_value() ? residual->detach().contiguous() : at::Tensor();
   at::Tensor out = at::empty_like(x);
-  const auto acc = x.options().dtype(acc_dtype(x));
+  const auto acc = x.options().dtype(accumulation_dtype(x));
   at::Tensor mean = at::empty({s.B, s.G}, acc), rstd = at::empty({s.B, s.G}, acc);
   if (s.S == 0) {  // an empty group: its mean is undefined (as group_norm's)
     mean.fill_(NAN);
@@ -68,7 +64,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> group_norm_silu_backw
   const at::Tensor m = mean.detach().contiguous(), rs = rstd.detach().contiguous();
   at::Tensor grad_input = at::empty_like(x);
   at::Tensor grad_residual = r.defined() ? at::empty_like(r) : at::empty({0}, x.options());
-  const auto acc = x.options().dtype(acc_dtype(x));
+  const auto acc = x.options().dtype(accumulation_dtype(x));
   at::Tensor row_sums = at::zeros({s.B, s.C, 2}, acc);
   const int64_t chunks = cuda::group_norm_silu_chunks(s.S);
   if (s.S > 0 && s.B > 0) {

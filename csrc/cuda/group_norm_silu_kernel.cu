@@ -62,6 +62,29 @@ struct Place {
   }
 };
 
+// A Place with its row's channel c, group bg, statistics and weight, the normalisation and
+// affine transform as one, (x - mean) * rstd * w + bias = x * a + shift, and the chunk's first
+// value's index base.
+template <typename T>
+struct NormPlace : Place {
+  using A = acc_t<T>;
+  int c;
+  int64_t bg, base;
+  A mean, rstd, w, a, shift;
+  __device__ NormPlace(int64_t S, int64_t chunks, int C, int Cg, const T* weight, const T* bias,
+                       const A* means, const A* rstds)
+      : Place(S, chunks) {
+    c = static_cast<int>(row % C);
+    bg = row / Cg;
+    mean = means[bg];
+    rstd = rstds[bg];
+    w = to_acc(weight[c]);
+    a = rstd * w;
+    shift = to_acc(bias[c]) - mean * a;
+    base = row * S + begin;
+  }
+};
+
 template <typename T>
 __global__ void __launch_bounds__(kThreads)
     stats_kernel(const T* __restrict__ x, const int64_t S, const int64_t chunks, const int Cg,
@@ -117,16 +140,11 @@ __global__ void __launch_bounds__(kThreads)
                  const acc_t<T>* __restrict__ rstd, const int64_t S, const int64_t chunks,
                  const int C, const int Cg, T* __restrict__ y) {
   using A = acc_t<T>;
-  const Place p(S, chunks);
-  const int c = static_cast<int>(p.row % C);
-  const int64_t bg = p.row / Cg;
-  const A a = rstd[bg] * to_acc(w[c]);
-  const A shift = to_acc(bias[c]) - mean[bg] * a;
-  const int64_t base = p.row * S + p.begin;
+  const NormPlace<T> p(S, chunks, C, Cg, w, bias, mean, rstd);
   for (int i = threadIdx.x; i < p.n; i += kThreads) {
-    A z = to_acc(x[base + i]) * a + shift;
-    if (r != nullptr) z += to_acc(r[base + i]);
-    y[base + i] = from_acc<T>(z / (A(1) + exp_acc(-z)));
+    A z = to_acc(x[p.base + i]) * p.a + p.shift;
+    if (r != nullptr) z += to_acc(r[p.base + i]);
+    y[p.base + i] = from_acc<T>(z / (A(1) + exp_acc(-z)));
   }
 }
 
@@ -150,19 +168,13 @@ __global__ void __launch_bounds__(kThreads)
                  T* __restrict__ dr, acc_t<T>* __restrict__ workspace) {
   using A = acc_t<T>;
   __shared__ A scratch[kWarps][2];
-  const Place p(S, chunks);
-  const int c = static_cast<int>(p.row % C);
-  const int64_t bg = p.row / Cg;
-  const A m = mean[bg], rs = rstd[bg];
-  const A a = rs * to_acc(w[c]);
-  const A shift = to_acc(bias[c]) - m * a;
-  const int64_t base = p.row * S + p.begin;
+  const NormPlace<T> p(S, chunks, C, Cg, w, bias, mean, rstd);
   A s1 = A(0), s2 = A(0);
   for (int i = threadIdx.x; i < p.n; i += kThreads) {
-    const A g = silu_grad(dy, x, r, base + i, a, shift);
-    if (dr != nullptr) dr[base + i] = from_acc<T>(g);
+    const A g = silu_grad(dy, x, r, p.base + i, p.a, p.shift);
+    if (dr != nullptr) dr[p.base + i] = from_acc<T>(g);
     s1 += g;
-    s2 += g * (to_acc(x[base + i]) - m) * rs;
+    s2 += g * (to_acc(x[p.base + i]) - p.mean) * p.rstd;
   }
   block_sum2(s1, s2, scratch);
   if (threadIdx.x == 0) {
@@ -196,13 +208,11 @@ __global__ void __launch_bounds__(kThreads)
                   const acc_t<T>* __restrict__ row_sums, const int64_t S, const int64_t chunks,
                   const int C, const int Cg, T* __restrict__ dx) {
   using A = acc_t<T>;
-  const Place p(S, chunks);
-  const int c = static_cast<int>(p.row % C);
-  const int64_t bg = p.row / Cg;
+  const NormPlace<T> p(S, chunks, C, Cg, w, bias, mean, rstd);
   // the group's means of dxhat = g * w and of dxhat * xhat (every thread: Cg broadcast reads)
   A m1 = A(0), m2 = A(0);
   for (int k = 0; k < Cg; ++k) {
-    const int64_t row = bg * Cg + k;
+    const int64_t row = p.bg * Cg + k;
     const A wk = to_acc(w[row % C]);
     m1 += wk * row_sums[row * 2];
     m2 += wk * row_sums[row * 2 + 1];
@@ -210,13 +220,10 @@ __global__ void __launch_bounds__(kThreads)
   const A count = static_cast<A>(Cg * S);
   m1 /= count;
   m2 /= count;
-  const A m = mean[bg], rs = rstd[bg], wc = to_acc(w[c]);
-  const A a = rs * wc;
-  const A shift = to_acc(bias[c]) - m * a;
-  const int64_t base = p.row * S + p.begin;
   for (int i = threadIdx.x; i < p.n; i += kThreads) {
-    const A g = silu_grad(dy, x, r, base + i, a, shift);
-    dx[base + i] = from_acc<T>(rs * (g * wc - m1 - (to_acc(x[base + i]) - m) * rs * m2));
+    const A g = silu_grad(dy, x, r, p.base + i, p.a, p.shift);
+    const A xhat = (to_acc(x[p.base + i]) - p.mean) * p.rstd;
+    dx[p.base + i] = from_acc<T>(p.rstd * (g * p.w - m1 - xhat * m2));
   }
 }
 

@@ -272,7 +272,7 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
   const at::ScalarType gemm = compute_dtype(xy.scalar_type());
   const c10::impl::ExcludeDispatchKeyGuard no_autocast(c10::autocast_dispatch_keyset);
 
-  const at::ScalarType acc = xy.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  const at::ScalarType acc = accumulation_dtype(xy);
   const auto opts = xy.options().dtype(acc);
   const int64_t L = p.layers();
   const int64_t in0 = p.widths[0];

@@ -1,11 +1,45 @@
-// The emulated CUDA build's own pieces: the stream the glue asks for (the emulator has one,
-// null) and a binding of the emulator's self-test kernels (selftest_kernel.cu).
+// The emulated CUDA build's own pieces: the fiber switch (t3emu.h), the stream the glue asks
+// for (the emulator has one, null) and a binding of the emulator's self-test kernels
+// (selftest_kernel.cu).
 #include <torch/extension.h>
 
 #include <stdexcept>
 #include <string>
 
 #include "cuda/stream.h"
+
+// t3emu_switch(void** save, void* load), System V x86-64: rdi = save, rsi = load. The saved
+// frame, from the stack pointer up: MXCSR and the x87 control word (8 bytes), r15, r14, r13,
+// r12, rbx, rbp, the return address (t3emu.h's start_fiber lays out a new fiber's alike).
+asm(R"(
+    .pushsection .text
+    .globl t3emu_switch
+    .type t3emu_switch, @function
+t3emu_switch:
+    pushq %rbp
+    pushq %rbx
+    pushq %r12
+    pushq %r13
+    pushq %r14
+    pushq %r15
+    subq $8, %rsp
+    stmxcsr (%rsp)
+    fnstcw 4(%rsp)
+    movq %rsp, (%rdi)
+    movq %rsi, %rsp
+    ldmxcsr (%rsp)
+    fldcw 4(%rsp)
+    addq $8, %rsp
+    popq %r15
+    popq %r14
+    popq %r13
+    popq %r12
+    popq %rbx
+    popq %rbp
+    ret
+    .size t3emu_switch, .-t3emu_switch
+    .popsection
+)");
 
 cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks);
 

@@ -1,8 +1,8 @@
 // The emulator's runtime: CUDA's execution model on the host, for testing kernels on a
 // machine without a GPU.
 //
-// A launch runs its blocks one after another. A block's threads are fibers (ucontext) on one
-// host thread, each with its own stack; a fiber runs until it reaches a barrier
+// A launch runs its blocks one after another. A block's threads are fibers on one host thread,
+// each with its own stack; a fiber runs until it reaches a barrier
 // (__syncthreads, __syncthreads_or, __syncwarp) or returns, then the next one runs. A
 // barrier opens when every live thread of its scope (the block, or the warp) waits at it; a
 // block whose threads wait at barriers that can never open (divergent barriers) fails the
@@ -14,8 +14,6 @@
 // did not write) and is followed by guard bytes that are checked after the block. Asynchronous
 // copies to shared memory (cuda_pipeline.h) land only when their thread waits for them.
 #pragma once
-
-#include <ucontext.h>
 
 #include <math.h>
 
@@ -37,6 +35,12 @@ struct dim3 {
   dim3(unsigned x_, unsigned y_ = 1, unsigned z_ = 1) : x(x_), y(y_), z(z_) {}
 };
 
+// Switches fibers (x86-64, defined in harness.cpp): pushes the callee-saved registers and the
+// floating-point control words onto the running stack, stores its pointer in *save and pops
+// the same from the stack `load`. A switch is a few nanoseconds; ucontext's swapcontext makes
+// a signal-mask system call at every switch, which took most of an emulated forecast's time.
+extern "C" void t3emu_switch(void** save, void* load);
+
 namespace t3emu {
 
 // The CUDA error codes the emulator returns (cuda_runtime.h names them).
@@ -56,7 +60,7 @@ struct AsyncCopy {
 };
 
 struct Fiber {
-  ucontext_t ctx;
+  void* sp = nullptr;  // its saved stack (t3emu_switch)
   std::unique_ptr<char[]> stack;
   dim3 thread_idx;
   unsigned linear = 0;  // x fastest, as CUDA numbers the threads of a block
@@ -71,7 +75,7 @@ struct Fiber {
 struct BlockState {
   dim3 block_idx, block_dim, grid_dim;
   std::vector<Fiber> fibers;
-  ucontext_t scheduler;
+  void* scheduler = nullptr;  // the launching thread's saved stack
   Fiber* current = nullptr;
   unsigned char* smem = nullptr;
   size_t smem_bytes = 0;
@@ -99,7 +103,7 @@ inline std::string& launch_error() {
     std::abort();
   }
   b->current->wait = Wait::kDone;
-  swapcontext(&b->current->ctx, &b->scheduler);
+  t3emu_switch(&b->current->sp, b->scheduler);
   std::abort();  // a failed fiber is never resumed
 }
 
@@ -118,17 +122,41 @@ inline void wait_at(Wait w, int vote) {
   BlockState* b = block_state();
   b->current->wait = w;
   b->current->vote = vote;
-  swapcontext(&b->current->ctx, &b->scheduler);
+  t3emu_switch(&b->current->sp, b->scheduler);
 }
 
-inline void fiber_entry() {
+// A fiber's first function; a finished fiber is never resumed (the next block starts it anew).
+[[noreturn]] inline void fiber_entry() {
   BlockState* b = block_state();
   (*b->body)();
   b->current->wait = Wait::kDone;
-  swapcontext(&b->current->ctx, &b->scheduler);
+  t3emu_switch(&b->current->sp, b->scheduler);
+  std::abort();
 }
 
 constexpr size_t kStackBytes = 256 * 1024;
+
+// The launching thread's SSE and x87 control words (rounding, denormals), as t3emu_switch
+// saves them, for a new fiber to start with.
+inline uint64_t control_words() {
+  uint32_t csr;
+  uint16_t cw;
+  asm volatile("stmxcsr %0" : "=m"(csr));
+  asm volatile("fnstcw %0" : "=m"(cw));
+  return csr | uint64_t{cw} << 32;
+}
+
+// Lays out a fresh stack as t3emu_switch leaves one, so that switching to it enters
+// fiber_entry with the stack aligned as after a call.
+inline void start_fiber(Fiber& f, uint64_t controls) {
+  if (!f.stack) f.stack.reset(new char[kStackBytes]);
+  auto* sp = reinterpret_cast<uint64_t*>(reinterpret_cast<uintptr_t>(f.stack.get() + kStackBytes) & ~uintptr_t{15});
+  *--sp = 0;  // fiber_entry's return address: it never returns
+  *--sp = reinterpret_cast<uint64_t>(&fiber_entry);
+  for (int reg = 0; reg < 6; ++reg) *--sp = 0;  // rbp, rbx, r12-r15
+  *--sp = controls;
+  f.sp = sp;
+}
 constexpr size_t kGuardBytes = 4096;
 constexpr unsigned char kGuard = 0xA5;
 
@@ -136,6 +164,7 @@ constexpr unsigned char kGuard = 0xA5;
 inline bool run_block(BlockState& b) {
   const unsigned threads = b.block_dim.x * b.block_dim.y * b.block_dim.z;
   if (b.fibers.size() != threads) b.fibers = std::vector<Fiber>(threads);  // stacks kept across blocks
+  const uint64_t controls = control_words();
   for (unsigned t = 0; t < threads; ++t) {
     Fiber& f = b.fibers[t];
     f.linear = t;
@@ -144,19 +173,14 @@ inline bool run_block(BlockState& b) {
     f.wait = Wait::kNone;
     f.uncommitted.clear();
     f.in_flight.clear();
-    if (!f.stack) f.stack.reset(new char[kStackBytes]);
-    getcontext(&f.ctx);
-    f.ctx.uc_stack.ss_sp = f.stack.get();
-    f.ctx.uc_stack.ss_size = kStackBytes;
-    f.ctx.uc_link = nullptr;
-    makecontext(&f.ctx, fiber_entry, 0);
+    start_fiber(f, controls);
   }
   const unsigned warps = (threads + 31) / 32;
   while (true) {
     for (Fiber& f : b.fibers) {
       if (f.wait != Wait::kNone) continue;
       b.current = &f;
-      swapcontext(&b.scheduler, &f.ctx);
+      t3emu_switch(&b.scheduler, f.sp);
       b.current = nullptr;
       if (!launch_error().empty()) return false;
     }

@@ -109,7 +109,7 @@ torch.library.register_autograd(
 
 DOUBLE_BACKWARD_UNSUPPORTED = (
     "t3fast.triplane_decode: double backward is not supported; use "
-    "t3fast.ops.reference.triplane_decode for higher-order gradients"
+    "t3fast.ops.reference.triplane_decode for higher-order gradients (torch 2.12 or later)"
 )
 
 

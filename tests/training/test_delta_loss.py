@@ -64,7 +64,7 @@ def test_an_agents_cells_weigh_one_plus_agent_weight():
     for cell in ((50, 50), (10, 10)):  # under the car, far from it
         offset = torch.zeros(2, 100, 100)
         offset[:, cell[0], cell[1]] = 1.0
-        losses.append(delta_rollout_loss(_Offset(planes, offset, False), batch, cfg, first=2)[1]["latent"])
+        losses.append(float(delta_rollout_loss(_Offset(planes, offset, False), batch, cfg, first=2)[1]["latent"]))
     assert losses[0] == pytest.approx(21 * losses[1], rel=1e-4)
 
 
@@ -95,7 +95,7 @@ def test_the_untrained_forecaster_is_the_copy_forecast_and_learns_below_it():
         batch = _batch(planes)
         cfg = WorldLossConfig(rollout_steps=1, pushforward=pushforward)
         _, parts = delta_rollout_loss(model, batch, cfg, first=0)
-        assert parts["latent"] == pytest.approx(parts["copy_latent"], rel=1e-5)
+        assert float(parts["latent"]) == pytest.approx(float(parts["copy_latent"]), rel=1e-5)
         opt = torch.optim.Adam([p for p in model.forecaster.parameters() if p.requires_grad], lr=3e-3)
         for step in range(60):
             loss, _ = delta_rollout_loss(model, batch, cfg, first=step % 6)

@@ -209,7 +209,7 @@ def test_pushforward_history_is_the_models_own_forecast():
     past, future = torch.zeros(1, 4, 2), torch.ones(1, 6, 2)
     cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10, xi=0.0, action_weight=0.0)
     with torch.no_grad():
-        pushed = rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["triplane"]
+        pushed = float(rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["triplane"])
         full, _, _ = model(planes.map(lambda p: p[:, :5]), past, steps=3)
         target = planes.map(lambda p: p[:, 7])
         expected = sum(torch.nn.functional.l1_loss(p, t) + torch.nn.functional.mse_loss(p, t)
@@ -267,7 +267,7 @@ def test_pushforward_planner_continues_from_its_own_plan():
     past, future = torch.tensor([[[0.5, 0.0]] * 4]), torch.tensor([[[1.0, 0.2]] * 6])
     cfg = WorldLossConfig(num_occupied=50, num_near_free=20, num_far_free=10, xi=0.0, gamma=0.0)
     with torch.no_grad():
-        pushed = rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["action"]
+        pushed = float(rollout_loss(model, planes, occ, past, future, 2, 1, cfg)[1]["action"])
         _, full_actions = model(planes.map(lambda p: p[:, :5]), past, steps=3)[:2]
         teacher = rollout_loss(model, planes, occ, past, future, 2, 1, replace(cfg, pushforward=False))[1]["action"]
     assert pushed == pytest.approx(float((full_actions[:, 2] - future[:, 2]).square().sum()), rel=1e-5)

@@ -4,9 +4,9 @@
 #   bash .ci/other_torch.sh python3.12 2.11.0            # then any pytest arguments
 #   bash .ci/other_torch.sh python3.12 2.11.0 tests/ops -x
 # It makes (or reuses) a virtual environment ${VENV_ROOT:-/tmp}/t3fast-torch<version>-<python>,
-# installs that torch from PyPI (the CUDA build with CUDA's wheels: about 3 GB) and the test
-# dependencies, clones the repository's HEAD into it, builds the kernels as the GPU check does
-# (FORCE_CUDA=1, TORCH_CUDA_ARCH_LIST=9.0) and runs pytest there. Not part of CI: the download.
+# installs that torch from PyPI (the CUDA build with CUDA's wheels: about 3 GB), clones the
+# repository's HEAD into it, runs `make install` there (the other dependencies, and the kernels
+# built for sm_90 as the GPU check builds them) and then pytest. Not part of CI: the download.
 set -euo pipefail
 
 if [[ $# -lt 2 ]]; then
@@ -22,8 +22,7 @@ VENV="${VENV_ROOT:-/tmp}/t3fast-torch${TORCH_VERSION}-$(basename "${PYTHON_EXE}"
 if [[ ! -x "${VENV}/bin/python" ]]; then
   "${PYTHON_EXE}" -m venv "${VENV}"
 fi
-"${VENV}/bin/pip" install -q "torch==${TORCH_VERSION}" numpy tqdm matplotlib pyyaml pybind11 ninja pytest \
-  pytest-benchmark setuptools
+"${VENV}/bin/pip" install -q "torch==${TORCH_VERSION}" setuptools
 
 # torch finds the toolkit from nvcc's folder, which a wrapper script elsewhere hides
 if [[ -z "${CUDA_HOME:-}" ]]; then
@@ -43,9 +42,9 @@ CLONE="${VENV}/t3fast"
 rm -rf "${CLONE}"
 git clone -q "${ROOT}" "${CLONE}"
 cd "${CLONE}"
-env "${BUILD_ENV[@]}" MAX_JOBS="$(nproc)" "${VENV}/bin/python" setup.py build_ext --inplace >build.log 2>&1 || {
-  tail -30 build.log
+env "${BUILD_ENV[@]}" MAX_JOBS="$(nproc)" make install PYTHON="${VENV}/bin/python" >install.log 2>&1 || {
+  tail -30 install.log
   exit 1
 }
 "${VENV}/bin/python" -c 'import t3fast; print("t3fast", t3fast.build_info())'
-PYTHONPATH="${CLONE}" exec "${VENV}/bin/python" -m pytest -q -p no:cacheprovider "$@"
+exec "${VENV}/bin/python" -m pytest -q -p no:cacheprovider "$@"

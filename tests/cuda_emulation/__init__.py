@@ -37,7 +37,7 @@ import torch
 
 #: the tests that build the emulator skip without a host C++ compiler, or off x86-64 (the
 #: fibers switch stacks in x86-64 assembly)
-requires_host_compiler = pytest.mark.skipif(
+requires_emulator = pytest.mark.skipif(
     (shutil.which("c++") is None and shutil.which("g++") is None) or platform.machine() not in ("x86_64", "AMD64"),
     reason="needs a host C++ compiler on x86-64")
 

@@ -16,14 +16,14 @@ import pytest
 import torch
 
 from t3fast.ops import reference
-from tests.cuda_emulation import load, requires_host_compiler
+from tests.cuda_emulation import load, requires_emulator
 from tests.ops import test_bev_components as bev_cases
 from tests.ops import test_box_fit as box_fit_cases
 from tests.ops import test_draw_boxes as draw_cases
 from tests.ops.lowp_reference import kink_free_upstream, rounded_decode
 from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, assert_close_lowp, decoder, lowp_pair, points_pair
 
-pytestmark = requires_host_compiler
+pytestmark = requires_emulator
 
 # The tiling cases: every point tile of the SIMT kernel (128, 64, 32 points) with each of its
 # register tiles (1, 2, 4, 8 points per thread), every warp grid of the tensor-core kernel,

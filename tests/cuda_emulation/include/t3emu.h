@@ -157,6 +157,7 @@ inline void start_fiber(Fiber& f, uint64_t controls) {
   *--sp = controls;
   f.sp = sp;
 }
+
 constexpr size_t kGuardBytes = 4096;
 constexpr unsigned char kGuard = 0xA5;
 

@@ -29,6 +29,7 @@ from torch.nn import functional as F
 from t3fast.models.attention import TransformerStack
 from t3fast.models.blocks import group_norm
 from t3fast.models.triplane import Triplane
+from t3fast.models.weight_uses import call_with, weights_per_use
 from t3fast.ops import delta_fuse
 
 
@@ -240,15 +241,19 @@ class DeltaTriplaneForecaster(nn.Module):
         self.upgrade_state_dict(state_dict, prefix)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-    def step(self, history: Triplane, step: int) -> tuple[Triplane, Triplane]:
-        """One step: history planes ``[B, T, C, H, W]`` -> (next triplane, its change Delta)."""
+    def step(self, history: Triplane, step: int,
+             weights: dict[str, dict[str, Tensor] | None] | None = None) -> tuple[Triplane, Triplane]:
+        """One step: history planes ``[B, T, C, H, W]`` -> (next triplane, its change Delta).
+        ``weights``: per plane, this step's aliases of its predictor's weights
+        (:func:`~t3fast.models.weight_uses.weights_per_use`), else the predictors' own."""
         nxt, deltas = [], []
         for name, planes in zip(("xy", "xz", "yz"), history):
             if name not in self.predictors:
                 nxt.append(None)
                 deltas.append(None)
                 continue
-            delta = self.predictors[name](planes[:, -self.history :], step)
+            predictor = self.predictors[name]
+            delta = call_with(predictor, None if weights is None else weights[name], planes[:, -self.history :], step)
             prev = planes[:, -1]
             out = delta_fuse(delta, prev, self.fuse_weight(name), self.fuse_bias[name]) if self.predict_delta else delta
             nxt.append(out)
@@ -263,8 +268,11 @@ class DeltaTriplaneForecaster(nn.Module):
         step the first prediction is (training starts rollouts from encoded later frames)."""
         history = past
         futures, deltas = [], []
-        for k in range(first_step, first_step + (steps or self.steps)):
-            nxt, delta = self.step(history, min(k, self.steps - 1))
+        ks = range(first_step, first_step + (steps or self.steps))
+        # every step reuses the predictors: their gradients summed in one pass (see weight_uses)
+        uses = {name: weights_per_use(predictor, len(ks)) for name, predictor in self.predictors.items()}
+        for i, k in enumerate(ks):
+            nxt, delta = self.step(history, min(k, self.steps - 1), {name: u[i] for name, u in uses.items()})
             futures.append(nxt)
             deltas.append(delta)
             history = history.append(nxt)

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from t3fast.models.blocks import group_norm
 from t3fast.models.ego_motion import rotate
 from t3fast.models.triplane import Triplane
+from t3fast.models.weight_uses import call_with, weights_per_use
 
 
 class BasicBlock(nn.Module):
@@ -70,7 +71,9 @@ class TriplaneResNet(nn.Module):
         self.fc = nn.Linear(planes * widths[-1], out_dim)
 
     def forward(self, triplane: Triplane) -> Tensor:
-        return self.fc(torch.cat([self.net(p) for p in triplane if p is not None], dim=1))
+        planes = [p for p in triplane if p is not None]
+        uses = weights_per_use(self.net, len(planes))
+        return self.fc(torch.cat([call_with(self.net, w, p) for w, p in zip(uses, planes)], dim=1))
 
 
 def _stacked(triplanes: Sequence[Triplane]) -> Triplane:
@@ -164,13 +167,16 @@ class MotionPlanner(nn.Module):
         steps = torch.arange(first_step, first_step + len(nexts), device=fused.device).clamp(max=self.steps - 1)
         return self.fc(fused).view(len(nexts), -1, fused.shape[-1]) + self.future_queries[steps, None]
 
-    def next_action(self, q_a: Tensor, actions: Tensor) -> Tensor:
+    def next_action(self, q_a: Tensor, actions: Tensor, weights: tuple[dict | None, dict | None] = (None, None)
+                    ) -> Tensor:
         """Displacement ``[B, 2]`` from Q_a and the actions so far ``[B, T, 2]``: the observed
         motion continued (:func:`continue_motion`) plus the decoder's correction (zero at
         initialisation, so an untrained planner drives on at constant speed and turn rate and
-        training learns how motion changes)."""
+        training learns how motion changes). ``weights``: this step's aliases of the action
+        encoder's and decoder's weights (:func:`~t3fast.models.weight_uses.weights_per_use`)."""
         tokens = self.action_in(actions) + self.action_time[: actions.shape[1]]
-        return continue_motion(actions) + self.action_out(self.decoder(q_a.unsqueeze(1), self.encoder(tokens))[:, 0])
+        memory = call_with(self.encoder, weights[0], tokens)
+        return continue_motion(actions) + self.action_out(call_with(self.decoder, weights[1], q_a.unsqueeze(1), memory)[:, 0])
 
     def forward(
         self,
@@ -191,8 +197,10 @@ class MotionPlanner(nn.Module):
         if not futures:
             return past_actions.new_zeros(past_actions.shape[0], 0, 2)
         actions, out = past_actions, []
-        for q_a in self.queries([present, *futures[:-1]], deltas, futures, first_step):
-            a = self.next_action(q_a, actions)
+        # every step reuses the action Transformer: its gradients summed in one pass (see weight_uses)
+        uses = zip(weights_per_use(self.encoder, len(futures)), weights_per_use(self.decoder, len(futures)))
+        for q_a, weights in zip(self.queries([present, *futures[:-1]], deltas, futures, first_step), uses):
+            a = self.next_action(q_a, actions, weights)
             out.append(a)
             actions = torch.cat([actions, a.unsqueeze(1)], dim=1)
         return torch.stack(out, dim=1)

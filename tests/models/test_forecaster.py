@@ -94,3 +94,62 @@ def test_planner_predicts_one_displacement_per_future(bev):
     assert actions.shape == (2, 6, 2)
     actions.square().sum().backward()
     assert all(p.grad is not None for p in planner.parameters())
+
+
+def _no_aliases(module, uses):
+    return [None] * uses
+
+
+def _backward_adds(loss: torch.Tensor) -> int:
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Adds(TorchDispatchMode):
+        count = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Adds.count += func._schema.name == "aten::add"
+            return func(*args, **(kwargs or {}))
+
+    with Adds():
+        loss.backward()
+    return Adds.count
+
+
+@pytest.mark.parametrize("part", ["forecaster", "planner"])
+def test_rollout_sums_each_weights_gradient_over_the_steps_at_once(part, monkeypatch):
+    """The steps of a rollout read aliases of the weights (weight_uses): the same gradients as
+    plain autograd, without its add per weight and step."""
+    from t3fast.models import forecaster as forecaster_module
+    from t3fast.models import planner as planner_module
+
+    steps = 4
+    past = past_triplane().map(torch.Tensor.double)
+    present = past.map(lambda p: p[:, -1])
+    if part == "forecaster":
+        module = small_forecaster().double()
+        for p in module.predictors.parameters():
+            torch.nn.init.normal_(p, std=0.05)
+
+        def loss():
+            futures, deltas = module(past, steps=steps)
+            return sum(p.square().sum() for t in futures + deltas for p in t)
+        reused = list(module.predictors.parameters())
+    else:
+        torch.manual_seed(0)
+        module = MotionPlanner(channels=8, widths=(8, 16, 16, 32), d_act=20, heads=4).double()
+        torch.nn.init.normal_(module.action_out.weight, std=0.1)
+        futures = [present.map(lambda p, k=k: p + 0.1 * k) for k in range(1, steps + 1)]
+
+        def loss():
+            return module(present, futures, futures, torch.randn(2, 4, 2, dtype=torch.float64,
+                                                                 generator=torch.Generator().manual_seed(1))).square().sum()
+        reused = list(module.encoder.parameters()) + list(module.decoder.parameters())
+    aliased = _backward_adds(loss())
+    grads = [p.grad.clone() for p in module.parameters()]
+    module.zero_grad()
+    monkeypatch.setattr(forecaster_module, "weights_per_use", _no_aliases)
+    monkeypatch.setattr(planner_module, "weights_per_use", _no_aliases)
+    plain = _backward_adds(loss())
+    for g, p in zip(grads, module.parameters()):
+        torch.testing.assert_close(g, p.grad, rtol=1e-10, atol=1e-12)
+    assert plain - aliased >= (steps - 1) * len(reused), (plain, aliased, len(reused))

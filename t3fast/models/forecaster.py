@@ -26,6 +26,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from t3fast.device_constants import made_once
 from t3fast.models.attention import TransformerStack
 from t3fast.models.blocks import group_norm
 from t3fast.models.triplane import Triplane
@@ -33,8 +34,10 @@ from t3fast.models.weight_uses import call_with, weights_per_use
 from t3fast.ops import delta_fuse
 
 
+@made_once
 def _sinusoid_2d(h: int, w: int, dim: int, device: torch.device) -> Tensor:
-    """Fixed 2D sin/cos position code ``[h * w, dim]`` (dim divisible by 4)."""
+    """Fixed 2D sin/cos position code ``[h * w, dim]`` (dim divisible by 4); made once per
+    size and device (read-only), not at every step of every rollout."""
     quarter = dim // 4
     freq = torch.exp(torch.arange(quarter, device=device) * (-math.log(10000.0) / max(quarter, 1)))
     ys, xs = torch.meshgrid(torch.arange(h, device=device), torch.arange(w, device=device), indexing="ij")

@@ -176,7 +176,8 @@ class MotionPlanner(nn.Module):
         encoder's and decoder's weights (:func:`~t3fast.models.weight_uses.weights_per_use`)."""
         tokens = self.action_in(actions) + self.action_time[: actions.shape[1]]
         memory = call_with(self.encoder, weights[0], tokens)
-        return continue_motion(actions) + self.action_out(call_with(self.decoder, weights[1], q_a.unsqueeze(1), memory)[:, 0])
+        correction = self.action_out(call_with(self.decoder, weights[1], q_a.unsqueeze(1), memory)[:, 0])
+        return continue_motion(actions) + correction
 
     def forward(
         self,

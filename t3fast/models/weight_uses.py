@@ -10,7 +10,9 @@ may differ from autograd's in the last bits.
 
 Under autocast the weights of the layers autocast runs in low precision (linear, convolution,
 attention projections) are cast once and the casts aliased, as autocast's own cache of leaf
-weights would: an alias is no leaf, and autocast would cast it again at every use.
+weights would: an alias is no leaf, and autocast would cast it again at every use. So it suits
+modules whose layers run as themselves; not the decoder, whose fused op reads its layers'
+float32 weights and decodes in their dtype.
 
     uses = weights_per_use(net, len(planes))
     features = [call_with(net, weights, plane) for weights, plane in zip(uses, planes)]

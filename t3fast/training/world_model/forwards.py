@@ -9,7 +9,6 @@ from torch import Tensor
 
 from t3fast.models.route_planner import RoutePlanner
 from t3fast.models.triplane import Triplane
-from t3fast.models.weight_uses import call_with, weights_per_use
 from t3fast.models.world_model import T3Former
 
 
@@ -41,10 +40,7 @@ class RolloutModel(T3Former):
         """(:meth:`rollout`'s futures and displacements, decoder logits ``[B, N, K]`` of each future
         triplane at ``points[k]`` ``[B, N, 3]``, or None without points)."""
         futures, actions = self.rollout(past, past_actions, steps, first_step)
-        if points is None:
-            return futures, actions, None
-        uses = weights_per_use(self.decoder, len(futures))  # gradients summed in one pass (see weight_uses)
-        logits = [call_with(self.decoder, w, t, p) for w, t, p in zip(uses, futures, points)]
+        logits = None if points is None else [self.decoder(t, p) for t, p in zip(futures, points)]
         return futures, actions, logits
 
 

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, Triplane
+from tests.models.test_weight_uses import _OpCount
 
 PLANES = (20, 18, 8)
 
@@ -101,18 +102,9 @@ def _no_aliases(module, uses):
 
 
 def _backward_adds(loss: torch.Tensor) -> int:
-    from torch.utils._python_dispatch import TorchDispatchMode
-
-    class Adds(TorchDispatchMode):
-        count = 0
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            Adds.count += func._schema.name == "aten::add"
-            return func(*args, **(kwargs or {}))
-
-    with Adds():
+    with _OpCount() as count:
         loss.backward()
-    return Adds.count
+    return count.ops["add"]
 
 
 @pytest.mark.parametrize("part", ["forecaster", "planner"])

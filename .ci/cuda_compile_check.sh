@@ -28,22 +28,35 @@ PY_INCLUDE="$("${PYTHON}" -c 'import sysconfig; print(sysconfig.get_paths()["inc
 BUILD="$(mktemp -d)"
 trap 'rm -rf "${BUILD}"' EXIT
 
-status=0
-check() {  # check <what> <command...>: runs it, fails on errors and on any compiler output
+# Each check runs as a background job, at most one per core, into its own log; the results are
+# reported in source order once all have finished.
+JOBS="$(nproc)"
+checks=()
+check() {  # check <what> <command...>: queues it; it fails on errors and on any compiler output
   local what="$1"
   shift
-  local log="${BUILD}/log"
-  if "$@" >"${log}" 2>&1 && [[ ! -s "${log}" ]]; then
-    echo "  ok    ${what}"
-  else
-    echo "  FAIL  ${what}"
-    cat "${log}"
-    status=1
-  fi
+  local log="${BUILD}/${#checks[@]}.log"
+  checks+=("${what}")
+  while (( $(jobs -rp | wc -l) >= JOBS )); do wait -n || true; done
+  ( if "$@" >"${log}" 2>&1 && [[ ! -s "${log}" ]]; then touch "${log}.ok"; fi ) &
 }
+report() {  # report <heading>: waits for every queued check and prints them under the heading
+  wait
+  echo "$1"
+  local i
+  for i in "${!checks[@]}"; do
+    if [[ -e "${BUILD}/${i}.log.ok" ]]; then
+      echo "  ok    ${checks[$i]}"
+    else
+      echo "  FAIL  ${checks[$i]}"
+      cat "${BUILD}/${i}.log"
+      status=1
+    fi
+  done
+}
+status=0
 
 echo "cuda_compile_check: $("${NVCC}" --version | grep -o "release [0-9.]*")"
-echo "kernels (nvcc -c, sm_80 + sm_90):"
 shopt -s nullglob
 for src in csrc/cuda/*_kernel.cu; do
   check "${src}" "${NVCC}" -c "${src}" -o "${BUILD}/$(basename "${src}" .cu).o" \
@@ -55,17 +68,21 @@ for src in csrc/cuda/*_kernel.cu; do
 done
 
 TORCH_VERSION="$("${PYTHON}" -c 'import torch; print(torch.__version__)')"
-echo "glue (g++ -fsyntax-only against torch ${TORCH_VERSION}):"
 TORCH_FLAGS=()
 for dir in ${TORCH_INCLUDES}; do TORCH_FLAGS+=(-isystem "${dir}"); done
+skipped=()
 for src in csrc/cuda/*.cpp; do
   if [[ "$(basename "${src}")" == "stream.cpp" ]]; then
-    echo "  skip  ${src} (includes c10/cuda; compiled only in a CUDA build of torch)"
+    skipped+=("${src}")
     continue
   fi
   check "${src}" g++ -std=c++20 -fsyntax-only -Wall -Wextra -Werror \
     "${TORCH_FLAGS[@]}" -isystem "${CUDA_INCLUDE}" -isystem "${PY_INCLUDE}" -Icsrc \
     -DTORCH_EXTENSION_NAME=_C "${src}"
+done
+report "kernels (nvcc -c, sm_80 + sm_90) and glue (g++ -fsyntax-only against torch ${TORCH_VERSION}):"
+for src in "${skipped[@]}"; do
+  echo "  skip  ${src} (includes c10/cuda; compiled only in a CUDA build of torch)"
 done
 
 if [[ ${status} -ne 0 ]]; then

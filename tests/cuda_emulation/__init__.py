@@ -30,7 +30,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import cache
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 import torch
@@ -104,9 +103,11 @@ def _generated() -> dict[str, str]:
 
 
 @cache
-def load() -> ModuleType:
+def load() -> object:
     """Builds (once per content, in the temporary directory) and loads the emulated CUDA
-    operators: afterwards ``torch.ops.t3fast_emu`` holds them; the module has ``selftest``."""
+    operators: afterwards ``torch.ops.t3fast_emu`` holds them. Returns the harness's operators
+    (``torch.ops.t3fast_emu_harness``): ``selftest(name, input)`` runs one of the emulator's
+    self-test kernels, ``set_compute_capability(major)`` sets what the emulated device reports."""
     from torch.utils.cpp_extension import load as load_extension
 
     files = _generated()
@@ -121,14 +122,15 @@ def load() -> ModuleType:
         if not (build / name).exists() or (build / name).read_text() != text:
             (build / name).write_text(text)
     sources = [str(p) for p in fixed] + [str(build / name) for name in files if name.endswith(".cpp")]
-    return load_extension(name=f"t3fast_cuda_emulation_{digest}", sources=sources, build_directory=str(build),
-                          extra_include_paths=[str(build), str(HERE / "include"), str(CSRC)],
-                          # a misaligned vector load (a float4 off its 16 bytes) faults on a GPU: here
-                          # UBSan's alignment check aborts with the file and line; kernels read shared
-                          # memory as other types than they wrote it (as CUDA allows)
-                          extra_cflags=["-O2", "-ffp-contract=off", "-fno-strict-aliasing", "-fsanitize=alignment",
-                                        "-fno-sanitize-recover=alignment"],
-                          extra_ldflags=["-fsanitize=alignment"], verbose=False)
+    load_extension(name=f"t3fast_cuda_emulation_{digest}", sources=sources, build_directory=str(build),
+                   extra_include_paths=[str(build), str(HERE / "include"), str(CSRC)],
+                   # a misaligned vector load (a float4 off its 16 bytes) faults on a GPU: here
+                   # UBSan's alignment check aborts with the file and line; kernels read shared
+                   # memory as other types than they wrote it (as CUDA allows)
+                   extra_cflags=["-O2", "-ffp-contract=off", "-fno-strict-aliasing", "-fsanitize=alignment",
+                                 "-fno-sanitize-recover=alignment"],
+                   extra_ldflags=["-fsanitize=alignment"], is_python_module=False, verbose=False)
+    return torch.ops.t3fast_emu_harness
 
 
 @contextmanager

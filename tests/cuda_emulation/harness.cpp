@@ -1,7 +1,10 @@
 // The emulated CUDA build's own pieces: the fiber switch (t3emu.h), the stream the glue asks
-// for (the emulator has one, null) and a binding of the emulator's self-test kernels
-// (selftest_kernel.cu).
-#include <torch/extension.h>
+// for (the emulator has one, null) and the operators t3fast_emu_harness::selftest (the
+// emulator's self-test kernels, selftest_kernel.cu) and ::set_compute_capability. They are
+// torch operators rather than Python bindings: torch/library.h compiles in a fraction of
+// torch/extension.h's time.
+#include <ATen/ATen.h>
+#include <torch/library.h>
 
 #include <stdexcept>
 #include <string>
@@ -56,11 +59,11 @@ namespace {
 
 // Runs one of selftest_kernel.cu's kernels on in (128 floats per block); returns out, or
 // raises the launch's error.
-torch::Tensor selftest(const std::string& name, const torch::Tensor& in) {
-  const torch::Tensor x = in.to(torch::kFloat).contiguous();
-  torch::Tensor out = torch::zeros_like(x);
-  const cudaError_t err = emulator_selftest(name, x.data_ptr<float>(), out.data_ptr<float>(),
-                                            static_cast<int>(x.numel() / 128));
+at::Tensor selftest(c10::string_view name, const at::Tensor& in) {
+  const at::Tensor x = in.to(at::kFloat).contiguous();
+  at::Tensor out = at::zeros_like(x);
+  const cudaError_t err = emulator_selftest(std::string(name), x.data_ptr<float>(),
+                                            out.data_ptr<float>(), static_cast<int>(x.numel() / 128));
   if (err != cudaSuccess) {
     const std::string message = cudaGetErrorString(err);
     t3emu::launch_error().clear();
@@ -69,11 +72,15 @@ torch::Tensor selftest(const std::string& name, const torch::Tensor& in) {
   return out;
 }
 
+// The compute capability (major) the emulated device reports: below 8 the glue takes the
+// CUDA-core kernels for every dtype, as on a GPU without bfloat16 tensor cores.
+void set_compute_capability(int64_t major) {
+  t3emu::compute_capability_major() = static_cast<int>(major);
+}
+
 }  // namespace
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("selftest", &selftest);
-  // The compute capability (major) the emulated device reports: below 8 the glue takes the
-  // CUDA-core kernels for every dtype, as on a GPU without bfloat16 tensor cores.
-  m.def("set_compute_capability", [](int major) { t3emu::compute_capability_major() = major; });
+TORCH_LIBRARY(t3fast_emu_harness, m) {
+  m.def("selftest(str name, Tensor input) -> Tensor", &selftest);
+  m.def("set_compute_capability(int major) -> ()", &set_compute_capability);
 }

@@ -38,10 +38,11 @@ def test_the_shipped_forecast_traces_into_one_graph_and_forecasts_as_eager(windo
 @pytest.mark.parametrize("name", ["wm-small-no-delta", "wm-small-own-frames"])
 def test_the_ablations_trace_into_one_graph_too(windows, name):
     """The renders that keep the observed static world (decoding only the voxels that can
-    change) and that decode every frame whole."""
+    change) and that decode every frame whole; two frames ahead (the trace unrolls the rollout,
+    whose later steps repeat the second)."""
     occ, motion = windows.past_occ[:1], windows.ego_poses[:1, : PRESENT + 1]
     compiled = t3fast.load_world_model(name).compile_forecast(backend="eager")
-    _same(compiled.forecast(occ, motion), t3fast.load_world_model(name).forecast(occ, motion))
+    _same(compiled.forecast(occ, motion, steps=2), t3fast.load_world_model(name).forecast(occ, motion, steps=2))
 
 
 def test_load_world_model_compiles_on_request(monkeypatch):

@@ -1,9 +1,13 @@
 // Operator schemas of the t3fast library and the Python module of the extension.
 // Kernels are registered per backend in csrc/cpu/*.cpp (CPU) and csrc/cuda/*.cpp (CUDA);
-// a build without CUDA simply has no CUDA registrations.
-#include <torch/extension.h>
+// a build without CUDA simply has no CUDA registrations. The module is written against
+// Python's C API, not pybind11: it has one function, and torch/extension.h would triple the
+// file's compile time.
+#include <Python.h>
 #include <torch/library.h>
 #include <torch/version.h>
+
+#include <string>
 
 #ifndef T3FAST_WITH_CUDA
 #define T3FAST_WITH_CUDA 0
@@ -87,26 +91,43 @@ TORCH_LIBRARY(t3fast, m) {
 
 namespace {
 
-py::dict build_info() {
-  py::dict info;
-  info["cpu"] = true;
-  info["cuda"] = static_cast<bool>(T3FAST_WITH_CUDA);
-  info["cuda_version"] = T3FAST_CUDA_VERSION;  // major * 1000 + minor * 10, -1 without CUDA
-  // the torch the extension was compiled against
-  info["torch_version"] = std::to_string(TORCH_VERSION_MAJOR) + "." +
-                          std::to_string(TORCH_VERSION_MINOR) + "." +
-                          std::to_string(TORCH_VERSION_PATCH);
+// {"cpu", "cuda", "cuda_version", "torch_version" (the torch compiled against), "openmp"}
+PyObject* build_info(PyObject* /*self*/, PyObject* /*args*/) {
+  const std::string torch_version = std::to_string(TORCH_VERSION_MAJOR) + "." +
+                                    std::to_string(TORCH_VERSION_MINOR) + "." +
+                                    std::to_string(TORCH_VERSION_PATCH);
 #ifdef _OPENMP
-  info["openmp"] = true;
+  PyObject* openmp = Py_True;
 #else
-  info["openmp"] = false;
+  PyObject* openmp = Py_False;
 #endif
-  return info;
+  // cuda_version: major * 1000 + minor * 10, -1 without CUDA
+  return Py_BuildValue("{s:O,s:O,s:i,s:s,s:O}", "cpu", Py_True, "cuda",
+                       T3FAST_WITH_CUDA ? Py_True : Py_False, "cuda_version",
+                       T3FAST_CUDA_VERSION, "torch_version", torch_version.c_str(), "openmp",
+                       openmp);
 }
+
+PyMethodDef methods[] = {
+    {"build_info", build_info, METH_NOARGS, "How this extension was built"},
+    {nullptr, nullptr, 0, nullptr},
+};
+
+PyModuleDef module = {
+    PyModuleDef_HEAD_INIT,
+    "t3fast._C",
+    "Compiled operators of t3fast (registered under torch.ops.t3fast)",
+    -1,
+    methods,
+    nullptr,
+    nullptr,
+    nullptr,
+    nullptr,
+};
 
 }  // namespace
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.doc() = "Compiled operators of t3fast (registered under torch.ops.t3fast)";
-  m.def("build_info", &build_info, "How this extension was built");
-}
+#define T3FAST_CONCAT_(a, b) a##b
+#define T3FAST_CONCAT(a, b) T3FAST_CONCAT_(a, b)
+
+PyMODINIT_FUNC T3FAST_CONCAT(PyInit_, TORCH_EXTENSION_NAME)(void) { return PyModule_Create(&module); }

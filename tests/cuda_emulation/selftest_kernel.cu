@@ -23,6 +23,19 @@ __global__ void reverse_kernel(const float* in, float* out, bool barrier) {
   out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
 }
 
+// out[t] = in[t - 1] (in[t] for thread 0), through shared memory: right only if
+// __syncthreads really waits. Without the barrier (`barrier` false) a race that running the
+// threads in order hides (thread t - 1 has written its slot when thread t reads it), and running
+// them last to first shows.
+__global__ void shift_kernel(const float* in, float* out, bool barrier) {
+  extern __shared__ __align__(16) unsigned char smem[];
+  float* buf = reinterpret_cast<float*>(smem);
+  const int t = threadIdx.x;
+  buf[t] = in[blockIdx.x * kThreads + t];
+  if (barrier) __syncthreads();
+  out[blockIdx.x * kThreads + t] = buf[t > 0 ? t - 1 : 0];
+}
+
 // out = in reversed, staged in shared memory by asynchronous copies: right only if a copy
 // lands when its thread waits for it and the barrier orders every thread's copy before the
 // reads. Without the wait (`wait` false) nothing has landed when the threads read.
@@ -87,6 +100,8 @@ __global__ void misaligned_kernel() {
 cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks) {
   if (name == "reverse" || name == "racy_reverse") {
     reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "reverse");
+  } else if (name == "shift" || name == "racy_shift") {
+    shift_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "shift");
   } else if (name == "staged_reverse" || name == "unwaited_reverse") {
     staged_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out,
                                                                                     name == "staged_reverse");

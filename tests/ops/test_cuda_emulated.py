@@ -21,7 +21,16 @@ from tests.ops import test_bev_components as bev_cases
 from tests.ops import test_box_fit as box_fit_cases
 from tests.ops import test_draw_boxes as draw_cases
 from tests.ops.lowp_reference import kink_free_upstream, rounded_decode
-from tests.ops.test_cuda_lowp import KINK_MARGIN, TOLERANCE, assert_close_lowp, decoder, lowp_pair, points_pair
+from tests.ops.test_cuda_lowp import (
+    KINK_MARGIN,
+    TOLERANCE,
+    assert_close_lowp,
+    backward_case,
+    decode_gradients,
+    decoder,
+    lowp_pair,
+    points_pair,
+)
 
 pytestmark = requires_emulator
 
@@ -103,6 +112,13 @@ def test_emulator_barriers_and_votes_are_real(emu):
     assert torch.equal(emu.selftest("reverse", x), x.view(3, 128).flip(1).reshape(-1))
     # without the barrier the early threads read shared memory nobody wrote yet
     assert not torch.equal(emu.selftest("racy_reverse", x), x.view(3, 128).flip(1).reshape(-1))
+    # a thread reading a lower thread's slot: in order the race is hidden, last to first it
+    # shows, and every other block runs that way
+    pair = x[:256].view(2, 128)
+    shifted = torch.cat([pair[:, :1], pair[:, :-1]], dim=1).reshape(-1)
+    assert torch.equal(emu.selftest("shift", x[:256]), shifted)
+    for _ in range(2):  # whichever order each block runs in
+        assert not torch.equal(emu.selftest("racy_shift", x[:256]), shifted)
     # asynchronous copies land when waited for, not before
     assert torch.equal(emu.selftest("staged_reverse", x), x.view(3, 128).flip(1).reshape(-1))
     assert not torch.equal(emu.selftest("unwaited_reverse", x), x.view(3, 128).flip(1).reshape(-1))
@@ -282,21 +298,17 @@ def test_backward_is_the_cpu_backward(cuda_ops, dtype, tol, mode):
 @pytest.mark.parametrize("autocast", [False, True])
 def test_low_precision_backward_is_the_rounded_references(cuda_ops, dtype, autocast):
     """The backward in the low precision (its inputs', or autocast's for float32 inputs) against
-    the gradients of the rounded reference, away from the ReLU kinks."""
-    (planes, weights, biases), ref = decoder(dtype, hidden=(64, 32), device="cpu")
-    planes32, weights32, biases32 = ref
-    preacts = []
-    out32 = rounded_decode(*planes32, weights32, biases32, dtype=dtype, preacts=preacts, grid=(24, 20, 8))
-    upstream32 = kink_free_upstream(torch.randn(out32.shape).to(dtype).float(), preacts, KINK_MARGIN[dtype])
-    params = [t.detach().requires_grad_() for t in (*planes32, *weights32, *biases32)]
-    want = torch.autograd.grad(rounded_decode(*params[:3], params[3:6], params[6:], dtype=dtype, grid=(24, 20, 8)),
-                               params, upstream32)
+    the gradients of the rounded reference, away from the ReLU kinks; the inputs of
+    ``test_cuda_lowp.test_triplane_decode_backward[grid]``."""
+    (planes, weights, biases, _, upstream), ref = backward_case(dtype, "grid", device="cpu")
+    planes32, weights32, biases32, _, upstream32 = ref
+    want = decode_gradients(lambda *a, **q: rounded_decode(*a, dtype=dtype, **q), *ref)
     if autocast:
         with cuda_state(autocast=dtype):
             got = cuda_ops.triplane_decode_backward(upstream32, *planes32, weights32, biases32, None, [24, 20, 8], 6)
         assert got[0].dtype == torch.float32
     else:
-        got = cuda_ops.triplane_decode_backward(upstream32.to(dtype), *planes, weights, biases, None, [24, 20, 8], 6)
+        got = cuda_ops.triplane_decode_backward(upstream, *planes, weights, biases, None, [24, 20, 8], 6)
     flat = [*got[:3], *got[3], *got[4]]
     tol = TOLERANCE[dtype]
     for a, e in zip(flat, want):

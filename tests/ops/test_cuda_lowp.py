@@ -141,6 +141,19 @@ def test_triplane_decode_backward(dtype, mode):
 
 
 @pytest.mark.parametrize("dtype", LOWP)
+@pytest.mark.parametrize("mode", ["grid", "points"])
+def test_triplane_decode_backward_without_reduced_precision_reductions(dtype, mode, monkeypatch):
+    """As :func:`test_triplane_decode_backward`, with cuBLAS kept from reducing partial sums in
+    the low precision (PyTorch allows it by default). The backward's GEMMs are cuBLAS's, and its
+    default is what the emulator cannot show (its GEMMs are the CPU's, which pass this float16
+    grid case with these inputs): a pass here and a failure there places a backward error in
+    those reductions."""
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_fp16_reduced_precision_reduction", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_bf16_reduced_precision_reduction", False)
+    test_triplane_decode_backward(dtype, mode)
+
+
+@pytest.mark.parametrize("dtype", LOWP)
 @pytest.mark.parametrize("mode", ["grid", "argmax", "points"])
 def test_triplane_decode_under_autocast_computes_in_autocast_dtype(dtype, mode):
     """float32 inputs under autocast: float32 logits (labels) of an MLP run in the autocast

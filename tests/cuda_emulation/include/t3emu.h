@@ -3,7 +3,10 @@
 //
 // A launch runs its blocks one after another. A block's threads are fibers on one host thread,
 // each with its own stack; a fiber runs until it reaches a barrier
-// (__syncthreads, __syncthreads_or, __syncwarp) or returns, then the next one runs. A
+// (__syncthreads, __syncthreads_or, __syncwarp) or returns, then the next one runs: in thread
+// order in one block, last to first in the next (counting the blocks a host thread runs), so
+// that a thread reading another's write with no barrier between them reads it before it is
+// written in one of the two orders, whichever thread the kernel has write. A
 // barrier opens when every live thread of its scope (the block, or the warp) waits at it; a
 // block whose threads wait at barriers that can never open (divergent barriers) fails the
 // launch, as does any misuse the emulator checks (see emu_fail). Blocks share nothing but
@@ -177,8 +180,12 @@ inline bool run_block(BlockState& b) {
     start_fiber(f, controls);
   }
   const unsigned warps = (threads + 31) / 32;
+  // every other block runs its threads last to first (see the top of this file)
+  static thread_local unsigned blocks_run = 0;
+  const bool reverse = blocks_run++ % 2 == 1;
   while (true) {
-    for (Fiber& f : b.fibers) {
+    for (unsigned i = 0; i < threads; ++i) {
+      Fiber& f = b.fibers[reverse ? threads - 1 - i : i];
       if (f.wait != Wait::kNone) continue;
       b.current = &f;
       t3emu_switch(&b.scheduler, f.sp);

@@ -38,6 +38,11 @@ class Triplane(NamedTuple):
         return Triplane(*(None if h is None else torch.cat([h, f.unsqueeze(1)], dim=1) for h, f in zip(self, frame)))
 
     @staticmethod
+    def cat(parts: list[Triplane]) -> Triplane:
+        """Planes ``[B_i, ...]`` of several batches -> one batch ``[sum B_i, ...]``."""
+        return Triplane(*(None if ps[0] is None else torch.cat(ps) for ps in zip(*parts)))
+
+    @staticmethod
     def stack(frames: list[Triplane]) -> Triplane:
         """Planes ``[B, C, H, W]`` of T frames -> one history ``[B, T, C, H, W]``."""
         return Triplane(*(None if ps[0] is None else torch.stack(ps, dim=1) for ps in zip(*frames)))

@@ -12,6 +12,7 @@ from t3fast.errors import UsageError
 from t3fast.forecast.encode import encode_sequence
 from t3fast.forecast.plan import planned_poses
 from t3fast.forecast.render import observed_static, present_in_frames
+from t3fast.host_syncs import sync_free
 from t3fast.models import DeltaTriplaneForecaster, MotionPlanner, TriplaneDecoder, TriplaneEncoder
 from t3fast.models.ego_motion import poses_from_displacements
 from t3fast.models.planner import constant_turn_rate
@@ -55,6 +56,24 @@ def test_frames_encoded_together_as_on_an_accelerator_give_the_frame_by_frame_pl
     for a, b in zip(one_call, by_frame):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(one_call.xz[1, 2], encoder(occupancy[1:, 2]).xz[0], atol=1e-5, rtol=1e-5)
+
+
+def test_the_cpu_encodes_each_windows_frame_alone_and_the_gpus_code_keeps_the_batch(monkeypatch):
+    """On the CPU's own path a call per window and time step, whose planes are each window's
+    encoded alone, exactly; the GPU's code (``sync_free``) encodes a time step of the batch per call."""
+    encoder = tiny_world_model().encoder.eval()
+    occupancy = torch.stack([random_labels(3, (16, 12, 4), seed=s) for s in range(2)], dim=1)  # [3, 2, X, Y, Z]
+    batches, forward = [], type(encoder).forward
+    monkeypatch.setattr(type(encoder), "forward", lambda self, x: batches.append(len(x)) or forward(self, x))
+    planes = encode_sequence(encoder, occupancy)
+    assert batches == [1] * 6
+    for w in range(3):
+        alone = encode_sequence(encoder, occupancy[w : w + 1])
+        assert all(torch.equal(a[w : w + 1], b) for a, b in zip(planes, alone))
+    batches.clear()
+    with sync_free():
+        encode_sequence(encoder, occupancy)
+    assert batches == [3, 3]
 
 
 def test_encoder_stays_frozen_in_training_mode():

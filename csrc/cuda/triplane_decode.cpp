@@ -278,10 +278,16 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
   const int64_t in0 = p.widths[0];
   const int64_t total = p.B * p.per_batch;
   const at::Tensor go = grad_out.detach().contiguous().view({total, p.classes()});
-  std::vector<at::Tensor> w, b, gw, gb;
+  // In float16 every GEMM whose result the backward rounds has a float32 result, rounded once
+  // (bias and ReLU in float32), as the forward kernel rounds: cuBLAS may otherwise reduce a
+  // float16 GEMM's partial sums in float16 (PyTorch allows it by default), which moves
+  // recomputed pre-activations across their ReLU kinks.
+  const bool float32_sums = gemm == at::kHalf;
+  std::vector<at::Tensor> w, wt, b, gw, gb;
   for (int64_t l = 0; l < L; ++l) {
     w.push_back(p.weights[l].to(gemm));
-    b.push_back(p.biases[l].to(gemm));
+    wt.push_back(w.back().t());
+    b.push_back(p.biases[l].to(float32_sums ? acc : gemm));
     gw.push_back(at::zeros(p.weights[l].sizes(), opts));
     gb.push_back(at::zeros(p.biases[l].sizes(), opts));
   }
@@ -305,8 +311,12 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
                    kOpBwd);
       std::vector<at::Tensor> acts{chunk_features.to(gemm)};  // input of each layer
       for (int64_t l = 0; l + 1 < L; ++l) {
-        // bias and ReLU in the GEMM's epilogue (cuBLASLt) where it can
-        acts.push_back(at::_addmm_activation(b[l], acts[l], w[l].t()));
+        if (float32_sums) {
+          acts.push_back(at::mm(acts[l], wt[l], acc).add_(b[l]).relu_().to(gemm));
+        } else {
+          // bias and ReLU in the GEMM's epilogue (cuBLASLt) where it can
+          acts.push_back(at::_addmm_activation(b[l], acts[l], wt[l]));
+        }
       }
       at::Tensor g = go.narrow(0, start, count).to(gemm);
       for (int64_t l = L - 1; l >= 0; --l) {
@@ -317,7 +327,7 @@ triplane_decode_backward_cuda(const at::Tensor& grad_out, const at::Tensor& xy,
           gw[l].add_(at::mm(g.t(), acts[l], acc));
         }
         gb[l].add_(at::sum(g, {0}, false, acc));
-        g = at::mm(g, w[l]);
+        g = float32_sums ? at::mm(g, w[l], acc).to(gemm) : at::mm(g, w[l]);
         // ReLU backward (one kernel): zero where the layer's output was not positive (NaN included).
         if (l > 0) g = at::threshold_backward(g, acts[l], 0);
       }

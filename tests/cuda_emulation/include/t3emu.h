@@ -5,8 +5,8 @@
 // each with its own stack; a fiber runs until it reaches a barrier
 // (__syncthreads, __syncthreads_or, __syncwarp) or returns, then the next one runs: in thread
 // order in one block, last to first in the next (counting the blocks a host thread runs), so
-// that a thread reading another's write with no barrier between them reads it before it is
-// written in one of the two orders, whichever thread the kernel has write. A
+// that a thread reading another thread's write with no barrier between them runs before the
+// writer in one of the two orders, and reads the value unwritten. A
 // barrier opens when every live thread of its scope (the block, or the warp) waits at it; a
 // block whose threads wait at barriers that can never open (divergent barriers) fails the
 // launch, as does any misuse the emulator checks (see emu_fail). Blocks share nothing but

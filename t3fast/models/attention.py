@@ -40,8 +40,8 @@ class Attention(nn.Module):
     def forward(self, x: Tensor, context: Tensor) -> Tensor:
         n, tq, d = x.shape
         tk, h = context.shape[1], self.heads
-        # the projections of one input in one GEMM: its backward is one GEMM per operand where
-        # three each and two adds of the input's gradients were (the values are the same)
+        # the projections of one input as one GEMM (the same values): in the backward one GEMM
+        # per operand instead of three, and no adds of the input's three gradients
         if context is x:
             q, k, v = _projections(x, self.q, self.k, self.v).view(n, tq, 3, h, d // h).unbind(2)
         else:

@@ -76,11 +76,6 @@ class TriplaneResNet(nn.Module):
         return self.fc(torch.cat([call_with(self.net, w, p) for w, p in zip(uses, planes)], dim=1))
 
 
-def _stacked(triplanes: Sequence[Triplane]) -> Triplane:
-    """The triplanes of several steps as one batch: each plane ``[S * B, C, H, W]``."""
-    return Triplane(*(None if planes[0] is None else torch.cat(planes) for planes in zip(*triplanes)))
-
-
 def _turn(prev: Tensor, last: Tensor, min_step: float) -> Tensor:
     """The angle ``[B]`` from displacement ``prev`` to ``last`` ``[B, 2]``; 0 where either is
     shorter than ``min_step`` metres (a heading there is noise)."""
@@ -160,7 +155,7 @@ class MotionPlanner(nn.Module):
         """Q_a ``[S, B, d_act]`` of the S future steps from ``first_step`` on, from each step's
         (previous, change, next) triplanes: the steps' triplanes go through each encoder together
         (they do not depend on the actions, which are planned one step after another)."""
-        z_p, dz, z_f = (enc(_stacked(ts)) for enc, ts in ((self.enc_prev, prevs), (self.enc_delta, deltas),
+        z_p, dz, z_f = (enc(Triplane.cat(ts)) for enc, ts in ((self.enc_prev, prevs), (self.enc_delta, deltas),
                                                              (self.enc_next, nexts)))
         fused = (self.gate_prev(dz) * z_p + dz + self.gate_next(dz) * z_f) / 3
         # each step's learnable query (the last one's past the last): an index made on the device

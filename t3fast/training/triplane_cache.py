@@ -65,7 +65,7 @@ def encode_scene(encoder: TriplaneEncoder, scene: PackedScene, batch_size: int =
         frames = [scene.frame_occ(t) for t in range(start, min(start + batch_size, scene.num_frames))]
         labels = torch.from_numpy(np.stack(frames)).to(device)
         chunks.append(encoder(labels).map(lambda p: p.half().cpu()))
-    return Triplane(*(None if chunks[0][i] is None else torch.cat([c[i] for c in chunks]) for i in range(3)))
+    return Triplane.cat(chunks)
 
 
 def cached_scene_triplanes(

@@ -11,29 +11,23 @@ namespace {
 
 constexpr int kThreads = 128;
 
-// out = in reversed, through shared memory: right only if __syncthreads really waits. Without
-// the barrier (`barrier` false) a race, which the emulator exposes every time (a thread runs
-// until it returns, so thread 0 reads slots nobody has written yet).
-__global__ void reverse_kernel(const float* in, float* out, bool barrier) {
-  extern __shared__ __align__(16) unsigned char smem[];
-  float* buf = reinterpret_cast<float*>(smem);
-  const int t = threadIdx.x;
-  buf[t] = in[blockIdx.x * kThreads + t];
-  if (barrier) __syncthreads();
-  out[blockIdx.x * kThreads + t] = buf[kThreads - 1 - t];
-}
+// Which slot of shared memory a thread of exchange_kernel reads.
+enum class Read { kReversed, kPrevious };
 
-// out[t] = in[t - 1] (in[t] for thread 0), through shared memory: right only if
-// __syncthreads really waits. Without the barrier (`barrier` false) a race that running the
-// threads in order hides (thread t - 1 has written its slot when thread t reads it), and running
-// them last to first shows.
-__global__ void shift_kernel(const float* in, float* out, bool barrier) {
+// Through shared memory: out = in reversed (kReversed), or out[t] = in[t - 1] and in[0] for
+// thread 0 (kPrevious); right only if __syncthreads really waits. Without the barrier
+// (`barrier` false) a race. Reversed, the emulator shows it every time: a thread runs until it
+// returns, so thread 0 reads slots nobody has written yet. Previous, running the threads in
+// order hides it (thread t - 1 has written its slot when thread t reads it), and running them
+// last to first shows it.
+__global__ void exchange_kernel(const float* in, float* out, bool barrier, Read read) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* buf = reinterpret_cast<float*>(smem);
   const int t = threadIdx.x;
   buf[t] = in[blockIdx.x * kThreads + t];
   if (barrier) __syncthreads();
-  out[blockIdx.x * kThreads + t] = buf[t > 0 ? t - 1 : 0];
+  const int slot = read == Read::kReversed ? kThreads - 1 - t : (t > 0 ? t - 1 : 0);
+  out[blockIdx.x * kThreads + t] = buf[slot];
 }
 
 // out = in reversed, staged in shared memory by asynchronous copies: right only if a copy
@@ -99,9 +93,11 @@ __global__ void misaligned_kernel() {
 // Runs the self-test `name` (see above) on n = blocks * 128 floats of in, out.
 cudaError_t emulator_selftest(const std::string& name, const float* in, float* out, int blocks) {
   if (name == "reverse" || name == "racy_reverse") {
-    reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "reverse");
+    exchange_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "reverse",
+                                                                              Read::kReversed);
   } else if (name == "shift" || name == "racy_shift") {
-    shift_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "shift");
+    exchange_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out, name == "shift",
+                                                                              Read::kPrevious);
   } else if (name == "staged_reverse" || name == "unwaited_reverse") {
     staged_reverse_kernel<<<blocks, kThreads, kThreads * sizeof(float), nullptr>>>(in, out,
                                                                                     name == "staged_reverse");
@@ -117,7 +113,7 @@ cudaError_t emulator_selftest(const std::string& name, const float* in, float* o
     misaligned_kernel<<<1, 32, 1024>>>();
   } else if (name == "unopted_shared_memory") {
     // 64 KB without cudaFuncSetAttribute: over the default 48 KB limit
-    reverse_kernel<<<1, kThreads, 64 * 1024>>>(in, out, true);
+    exchange_kernel<<<1, kThreads, 64 * 1024>>>(in, out, true, Read::kReversed);
   } else {
     return cudaErrorInvalidValue;
   }
